@@ -1,0 +1,157 @@
+"""Surfel data model: raw (optimisable) parameters of N 2D Gaussian surfels.
+
+Storage is raw, activations are applied by :mod:`comgs_dr.surfels.kernel`:
+
+===============  ============  =====================================================
+field            type          meaning
+===============  ============  =====================================================
+means            Point3f [N]   centres p_i (world space)
+quats            Vector4f [N]  rotation q_i, **w-first** (w, x, y, z), unnormalised
+log_scales       Vector2f [N]  log of the two tangent-plane std. deviations s_u, s_v
+opacity_logit    Float [N]     logit of the opacity o_i
+sh               Float [N*K*3] SH colour coefficients, row-major [N, K, 3], K=(deg+1)^2
+                               (3DGS convention: colour = max(SH(d)·f + 0.5, 0))
+albedo           Color3f [N]   base colour a_i in [0, 1] (linear)
+roughness        Float [N]     r_i in [0, 1]
+metallic         Float [N]     m_i in [0, 1]
+===============  ============  =====================================================
+
+The normal of a surfel is the third column of R(q); tangents are the first two.
+``to_numpy``/``from_numpy`` convert to a dict of float32 arrays shaped as in the
+table (``sh`` as [N, K, 3]); both require an active JIT variant.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+NUMPY_SHAPES = {  # field -> trailing shape (after N)
+    "means": (3,), "quats": (4,), "log_scales": (2,), "opacity_logit": (),
+    "sh": None, "albedo": (3,), "roughness": (), "metallic": (),
+}
+MATERIAL_FIELDS = ("albedo", "roughness", "metallic")
+
+
+def sh_coeff_count(degree: int) -> int:
+    if degree not in (0, 1, 2, 3):
+        raise ValueError(f"SH degree must be 0..3, got {degree}")
+    return (degree + 1) ** 2
+
+
+def sh_degree_from_count(k: int) -> int:
+    d = int(round(math.sqrt(k))) - 1
+    if (d + 1) ** 2 != k or d not in (0, 1, 2, 3):
+        raise ValueError(f"{k} SH coefficients per channel is not (degree+1)^2 for degree 0..3")
+    return d
+
+
+@dataclasses.dataclass
+class SurfelParams:
+    """Raw parameters of N surfels (a Dr.Jit PyTree: dr.eval/detach/grad work on it)."""
+    means: object
+    quats: object
+    log_scales: object
+    opacity_logit: object
+    sh: object
+    albedo: object
+    roughness: object
+    metallic: object
+
+    # ------------------------------------------------------------------ info
+    @property
+    def count(self) -> int:
+        return dr.width(self.opacity_logit)
+
+    @property
+    def sh_coeffs(self) -> int:
+        n = self.count
+        return dr.width(self.sh) // (3 * n) if n else 1
+
+    @property
+    def sh_degree(self) -> int:
+        return sh_degree_from_count(self.sh_coeffs)
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __repr__(self) -> str:
+        return f"SurfelParams(N={self.count}, sh_degree={self.sh_degree})"
+
+    # ----------------------------------------------------------- conversion
+    @staticmethod
+    def from_numpy(means, quats, log_scales, opacity_logit, sh, albedo=None,
+                   roughness=None, metallic=None) -> "SurfelParams":
+        """Build from arrays ([N,3], [N,4] w-first, [N,2], [N], [N,K,3] or [N,3], ...).
+
+        Missing materials default to albedo 0.5, roughness 0.5, metallic 0.
+        """
+        means = _f32(means, "means", (3,))
+        n = means.shape[0]
+        quats = _f32(quats, "quats", (4,), n)
+        log_scales = _f32(log_scales, "log_scales", (2,), n)
+        opacity_logit = _f32(opacity_logit, "opacity_logit", (), n)
+        sh = np.asarray(sh, dtype=np.float32)
+        if sh.ndim == 2 and sh.shape[1] == 3:
+            sh = sh[:, None, :]
+        if sh.ndim != 3 or sh.shape[0] != n or sh.shape[2] != 3:
+            raise ValueError(f"sh: expected shape [N={n}, K, 3], got {list(sh.shape)}")
+        sh_degree_from_count(sh.shape[1])
+        albedo = np.full((n, 3), 0.5, np.float32) if albedo is None else _f32(albedo, "albedo", (3,), n)
+        roughness = np.full(n, 0.5, np.float32) if roughness is None else _f32(roughness, "roughness", (), n)
+        metallic = np.zeros(n, np.float32) if metallic is None else _f32(metallic, "metallic", (), n)
+        return SurfelParams(
+            means=mi.Point3f(means.T.copy()), quats=mi.Vector4f(quats.T.copy()),
+            log_scales=mi.Vector2f(log_scales.T.copy()), opacity_logit=mi.Float(opacity_logit),
+            sh=mi.Float(np.ascontiguousarray(sh).ravel()), albedo=mi.Color3f(albedo.T.copy()),
+            roughness=mi.Float(roughness), metallic=mi.Float(metallic))
+
+    def to_numpy(self) -> dict:
+        """Dict of float32 arrays ([N,3], [N,4], [N,2], [N], [N,K,3], [N,3], [N], [N])."""
+        n = self.count
+        out = {}
+        for f in dataclasses.fields(self):
+            a = np.asarray(dr.detach(getattr(self, f.name)), dtype=np.float32)
+            if f.name == "sh":
+                a = a.reshape(n, -1, 3)
+            elif a.ndim == 2:
+                a = a.T
+            out[f.name] = np.ascontiguousarray(a)
+        return out
+
+    def copy(self) -> "SurfelParams":
+        return SurfelParams(**{f.name: type(getattr(self, f.name))(getattr(self, f.name))
+                               for f in dataclasses.fields(self)})
+
+    def subset(self, index) -> "SurfelParams":
+        """Surfels at the given indices (numpy int array or boolean mask)."""
+        d = self.to_numpy()
+        index = np.asarray(index)
+        if index.dtype == bool:
+            index = np.nonzero(index)[0]
+        return SurfelParams.from_numpy(**{k: v[index] for k, v in d.items()})
+
+    @staticmethod
+    def concat(parts: list["SurfelParams"]) -> "SurfelParams":
+        ds = [p.to_numpy() for p in parts]
+        k = max(d["sh"].shape[1] for d in ds)
+        for d in ds:  # pad lower SH degrees with zeros
+            if d["sh"].shape[1] < k:
+                pad = np.zeros((d["sh"].shape[0], k - d["sh"].shape[1], 3), np.float32)
+                d["sh"] = np.concatenate([d["sh"], pad], 1)
+        return SurfelParams.from_numpy(**{key: np.concatenate([d[key] for d in ds], 0) for key in ds[0]})
+
+
+def _f32(a, name, trailing, n=None) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float32)
+    if a.ndim != 1 + len(trailing) or tuple(a.shape[1:]) != trailing or (n is not None and a.shape[0] != n):
+        want = [n if n is not None else "N", *trailing]
+        raise ValueError(f"{name}: expected shape {want}, got {list(a.shape)}")
+    return a
+
+
+def field_names() -> tuple[str, ...]:
+    return tuple(f.name for f in dataclasses.fields(SurfelParams))
