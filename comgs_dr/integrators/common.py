@@ -1,10 +1,6 @@
-"""Hit-buffer tracing and front-to-back compositing shared by our integrators.
+"""Surfel gathering and analytic ray–surfel evaluation shared by our integrators.
 
-DESIGN §3: trace *without* AD to fill a buffer of up to K surfel ids per ray
-(the origin advances by t + ε after each hit; Mitsuba rays have no mint), then
-composite front to back in a Python-unrolled loop over K *with* AD, recomputing
-t, (u, v) and α analytically from the gathered parameters. Gradients thus flow
-to every surfel parameter except through changes of visibility order.
+The tracing/compositing passes built on these live in :mod:`.compositing`.
 """
 from __future__ import annotations
 
@@ -14,22 +10,29 @@ import drjit as dr
 import mitsuba as mi
 
 from ..surfels import kernel as Kn
-from ..surfels.shape import SurfelShape
+from ..surfels.shape import is_surfel_shape
 
-INVALID = 0xFFFFFFFF
-
-
-def surfel_shapes(scene: mi.Scene, who: str) -> list[SurfelShape]:
+def surfel_shapes(scene: mi.Scene, who: str) -> list:
     """All ``surfels`` shapes of a scene; any other shape is a clear error."""
     shapes = list(scene.shapes())
-    out = [s for s in shapes if isinstance(s, SurfelShape)]
-    others = [s for s in shapes if not isinstance(s, SurfelShape)]
+    out = [s for s in shapes if is_surfel_shape(s)]
+    others = [s for s in shapes if not is_surfel_shape(s)]
     if others:
         names = ", ".join(f"{type(s).__name__}('{s.id()}')" for s in others[:4])
         raise ValueError(f"{who}: renders only 'surfels' shapes; the scene also has {names}")
     if not out:
         raise ValueError(f"{who}: the scene has no 'surfels' shape")
     return out
+
+
+def mitsuba_ad_base(name: str = "RBIntegrator"):
+    """Mitsuba's Python AD integrator base class (``RBIntegrator``, ``ADIntegrator``)
+    built for the active variant."""
+    import importlib
+    from mitsuba.python.ad.integrators import common as mi_common
+    if not issubclass(mi_common.ADIntegrator, mi.CppADIntegrator):
+        mi_common = importlib.reload(mi_common)   # Mitsuba's own callback has not run yet
+    return getattr(mi_common, name)
 
 
 @dataclasses.dataclass
@@ -72,65 +75,6 @@ def eval_surfel(shapes, slot, index, ray, active, mode=dr.ReduceMode.Auto) -> Su
     alpha = dr.select(valid, alpha, 0.0)
     return SurfelSample(t=t, alpha=alpha, normal=Kn.facing_normal(n, ray.d), index=index,
                         slot=slot, valid=valid)
-
-
-@dataclasses.dataclass
-class HitBuffer:
-    """Up to K ordered surfel hits per ray: ids/slots are flat [R*K], count is [R]."""
-    ids: mi.UInt32
-    slots: mi.UInt32
-    count: mi.UInt32
-    K: int
-
-    def slot(self, k: int):
-        """(index, shape slot, valid) of the k-th hit of every ray."""
-        r = dr.arange(mi.UInt32, dr.width(self.count))
-        pos = r * self.K + k
-        idx = dr.gather(mi.UInt32, self.ids, pos)
-        slot = dr.gather(mi.UInt32, self.slots, pos)
-        return idx, slot, k < self.count
-
-
-@dr.syntax
-def trace_hits(scene, shapes, ray, K: int, eps: float, active=True) -> HitBuffer:
-    """Fill the hit buffer: ordered surfel hits with α ≥ ALPHA_MIN, until T < T_MIN.
-
-    Runs without AD; the result is evaluated so that a backward pass never
-    re-traces. ``eps`` advances the origin past each hit (scene units).
-    """
-    with dr.suspend_grad():
-        ray = mi.Ray3f(dr.detach(ray))
-        R = dr.width(ray.d)
-        rid = dr.arange(mi.UInt32, R)
-        ids = dr.full(mi.UInt32, INVALID, R * K)
-        slots = dr.zeros(mi.UInt32, R * K)
-        count = dr.zeros(mi.UInt32, R)
-        T = mi.Float(1.0)
-        t_acc = mi.Float(0.0)
-        act = mi.Bool(active) & (R > 0)
-        ptrs = [mi.ShapePtr(s) for s in shapes]
-        it = mi.UInt32(0)
-        max_iter = 8 * K + 16   # guards against a ray stuck on degenerate geometry
-        while act:
-            r = mi.Ray3f(dr.fma(ray.d, t_acc, ray.o), ray.d, ray.maxt - t_acc, ray.time, ray.wavelengths)
-            pi = scene.ray_intersect_preliminary(r, coherent=False, active=act)
-            act &= pi.is_valid()
-            index = pi.prim_index // 2
-            slot = mi.UInt32(0)
-            for j in range(1, len(ptrs)):
-                slot = dr.select(pi.shape == ptrs[j], j, slot)
-            smp = eval_surfel(shapes, slot, index, ray, act)
-            keep = act & smp.valid
-            pos = rid * K + count
-            dr.scatter(ids, index, pos, keep)
-            dr.scatter(slots, slot, pos, keep)
-            count[keep] = count + 1
-            T[keep] = T * (1.0 - smp.alpha)
-            t_acc[act] = t_acc + pi.t + eps
-            it += 1
-            act &= (count < K) & (T >= Kn.T_MIN) & (it < max_iter)
-        dr.eval(ids, slots, count)
-    return HitBuffer(ids=ids, slots=slots, count=count, K=K)
 
 
 def auto_epsilon(scene: mi.Scene) -> float:

@@ -7,11 +7,14 @@ buffers in one pass, plus the unbiased depth D̃ = D / W.
 """
 from __future__ import annotations
 
+import functools
+
 import drjit as dr
 import mitsuba as mi
 
-from ..surfels import kernel as Kn
-from . import common
+from . import common, compositing
+from .common import mitsuba_ad_base
+from ..surfels.shape import variant_class
 
 TARGETS = ("color", "weight", "depth", "depth_unbiased", "normal", "albedo", "roughness", "metallic")
 _CHANNELS = {"weight": ["weight"], "depth": ["depth"], "depth_unbiased": ["depth_unbiased"],
@@ -31,7 +34,7 @@ def parse_targets(spec: str) -> tuple[str, ...]:
     return tuple(t for t in TARGETS if t in names)
 
 
-class SurfelGBufferIntegrator(mi.ad.common.ADIntegrator):
+class SurfelGBufferBase:
     r"""
     .. _integrator-surfel_gbuffer:
 
@@ -73,7 +76,7 @@ class SurfelGBufferIntegrator(mi.ad.common.ADIntegrator):
     """
 
     def __init__(self, props: mi.Properties):
-        super().__init__(props)
+        type(self).__bases__[0].__init__(self, props)
         self.max_hits = int(props.get("max_hits", 32))
         if not 1 <= self.max_hits <= 1024:
             raise ValueError(f"surfel_gbuffer: 'max_hits' must be in 1..1024, got {self.max_hits}")
@@ -106,75 +109,64 @@ class SurfelGBufferIntegrator(mi.ad.common.ADIntegrator):
         return {k: image[:, :, s] for k, s in self.channel_slices(image.shape[2]).items()}
 
     # -------------------------------------------------------------- sample
-    def sample(self, mode, scene, sampler, ray, active, **kwargs):
+    def sample(self, mode, scene, sampler, ray, δL=None, δaovs=None, state_in=None,
+               active=True, **kwargs):
+        """Primal: trace + composite. Backward/Forward: adjoint over the stored hits."""
         shapes = common.surfel_shapes(scene, "surfel_gbuffer")
-        eps = self.epsilon if self.epsilon > 0 else common.auto_epsilon(scene)
-        ray = mi.Ray3f(ray)
-        hits = common.trace_hits(scene, shapes, ray, self.max_hits, eps, active)
-        buf = composite(shapes, ray, hits, self.targets, self.background)
+        ray = mi.Ray3f(dr.detach(ray))
+        if mode == dr.ADMode.Primal:
+            eps = self.epsilon if self.epsilon > 0 else common.auto_epsilon(scene)
+            hits, out, acc, T = compositing.trace_composite(
+                scene, shapes, ray, self.max_hits, eps, self.targets, self.background, active)
+            L = out.get("color", mi.Color3f(0.0))
+            return mi.Spectrum(L), acc["weight"] > 0, self._flatten(out), (hits, acc, T)
+        hits, acc, T = state_in
+        if mode == dr.ADMode.Backward:
+            grads = self._unflatten(δL, δaovs)
+            compositing.composite_adjoint(mode, shapes, ray, hits, acc, T, self.targets,
+                                          grads, self.background)
+            return mi.Spectrum(0.0), acc["weight"] > 0, [], None
+        tan = compositing.composite_adjoint(mode, shapes, ray, hits, acc, T, self.targets,
+                                            None, self.background)
+        L = tan.get("color", mi.Color3f(0.0))
+        return mi.Spectrum(L), acc["weight"] > 0, self._flatten(tan), None
+
+    def _flatten(self, out: dict) -> list:
         aovs = []
         for t in self.targets:
             if t == "color":
                 continue
-            v = buf[t]
+            v = out[t]
             aovs += [v] if isinstance(v, mi.Float) else [v[i] for i in range(3)]
-        L = buf.get("color", mi.Color3f(0.0))
-        return mi.Spectrum(L), buf["weight_all"] > 0, aovs, None
+        return aovs
+
+    def _unflatten(self, δL, δaovs) -> dict:
+        g, i = {}, 0
+        if "color" in self.targets and δL is not None:
+            g["color"] = mi.Color3f(δL)
+        for t in self.targets:
+            if t == "color":
+                continue
+            k = len(_CHANNELS[t])
+            g[t] = δaovs[i] if k == 1 else mi.Vector3f(δaovs[i], δaovs[i + 1], δaovs[i + 2])
+            i += k
+        return g
 
     def to_string(self):
         return (f"SurfelGBufferIntegrator[max_hits={self.max_hits}, "
                 f"targets={','.join(self.targets)}]")
 
 
-def composite(shapes, ray, hits: common.HitBuffer, targets, background=0.0) -> dict:
-    """Front-to-back alpha blending of the requested targets (differentiable).
+def integrator_class():
+    """The ``surfel_gbuffer`` class of the active variant."""
+    return _make_class(mi.variant())
 
-    Returns {target: value} for ``targets`` plus ``weight_all`` (W, always).
-    """
-    need = set(targets)
-    R = dr.width(hits.count)
-    T = dr.full(mi.Float, 1.0, R)
-    acc = {"weight": mi.Float(0.0)}
-    if "color" in need:
-        acc["color"] = mi.Color3f(0.0)
-    if need & {"depth", "depth_unbiased"}:
-        acc["depth"] = mi.Float(0.0)
-    if "normal" in need:
-        acc["normal"] = mi.Vector3f(0.0)
-    mats = [m for m in ("albedo", "roughness", "metallic") if m in need]
-    for m in mats:
-        acc[m] = mi.Color3f(0.0) if m == "albedo" else mi.Float(0.0)
-    sh_K = [s.params.sh_coeffs for s in shapes]
-    for k in range(hits.K):
-        index, slot, valid = hits.slot(k)
-        smp = common.eval_surfel(shapes, slot, index, ray, valid)
-        w = T * smp.alpha                                   # T_i α_i
-        acc["weight"] += w
-        if "depth" in acc:
-            acc["depth"] += w * smp.t
-        if "normal" in acc:
-            acc["normal"] += w * smp.normal
-        if "color" in acc:
-            c = mi.Color3f(0.0)
-            for j, sh in enumerate(shapes):
-                m = smp.valid if len(shapes) == 1 else (smp.valid & (slot == j))
-                cj = Kn.sh_color(sh.params.sh, index, sh_K[j], ray.d, m)
-                c = cj if len(shapes) == 1 else dr.select(m, cj, c)
-            acc["color"] += w * c
-        if mats:
-            g = common.gather_params(shapes, slot, index, smp.valid, mats)
-            for m in mats:
-                acc[m] += w * g[m]
-        T = T * (1.0 - smp.alpha)
-    out = {t: acc[t] for t in targets if t in acc}
-    W = acc["weight"]
-    if "color" in out and background > 0:
-        out["color"] = out["color"] + T * background
-    if "depth_unbiased" in targets:
-        out["depth_unbiased"] = dr.select(W > 1e-6, acc["depth"] / dr.maximum(W, 1e-6), 0.0)
-    out["weight_all"] = W
-    return out
+
+@functools.cache
+def _make_class(variant: str):
+    base = mitsuba_ad_base("RBIntegrator")
+    return variant_class("SurfelGBufferIntegrator", SurfelGBufferBase, base)
 
 
 def register():
-    mi.register_integrator("surfel_gbuffer", lambda props: SurfelGBufferIntegrator(props))
+    mi.register_integrator("surfel_gbuffer", lambda props: integrator_class()(props))

@@ -7,7 +7,7 @@ integrators recompute t, (u, v) and α analytically from the parameters (see
 """
 from __future__ import annotations
 
-import dataclasses
+import functools
 import os
 
 import drjit as dr
@@ -17,7 +17,32 @@ from . import kernel as K
 from .params import SurfelParams, field_names
 
 
-class SurfelShape(mi.Mesh):
+def _base(obj):
+    return type(obj).__bases__[0]
+
+
+def variant_class(name: str, methods: type, base: type) -> type:
+    """Subclass ``base`` (a per-variant nanobind type) with the methods of ``methods``.
+
+    nanobind types accept a single base, so the plugin's methods live on a plain
+    class and are copied into one subclass per variant; ``isinstance(x, methods)``
+    is replaced by :func:`is_kind`.
+    """
+    ns = {k: v for k, v in vars(methods).items() if k not in ("__dict__", "__weakref__")}
+    ns["_comgs_kind"] = methods.__name__
+    return type(name, (base,), ns)
+
+
+def is_kind(obj, methods: type) -> bool:
+    """True if ``obj`` was built by :func:`variant_class` from ``methods``."""
+    return getattr(type(obj), "_comgs_kind", None) == methods.__name__
+
+
+def is_surfel_shape(obj) -> bool:
+    return is_kind(obj, SurfelShapeBase)
+
+
+class SurfelShapeBase:
     r"""
     .. _shape-surfels:
 
@@ -48,13 +73,13 @@ class SurfelShape(mi.Mesh):
     """
 
     def __init__(self, props: mi.Properties, params: SurfelParams | None = None):
-        if props.has_property("to_world"):
+        if "to_world" in props:
             raise ValueError("surfels: 'to_world' is not supported; transform the PLY "
                              "(comgs_dr.surfels.io) before loading")
         if params is None:
-            if not props.has_property("filename"):
+            if "filename" not in props:
                 raise ValueError("surfels: give <string name=\"filename\"> (a surfel PLY) "
-                                 "or construct SurfelShape(props, params=...) from Python")
+                                 "or use SurfelShapeBase.from_params(params) from Python")
             fname = str(props["filename"])
             resolved = str(mi.file_resolver().resolve(fname))
             if not os.path.exists(resolved):
@@ -64,7 +89,7 @@ class SurfelShape(mi.Mesh):
         n = params.count
         if n < 1:
             raise ValueError("surfels: at least one surfel is required")
-        super().__init__("surfels", 4 * n, 2 * n, props)
+        _base(self).__init__(self, "surfels", 4 * n, 2 * n, props)
         self.params = params
         self._building = False
         self.nonfinite_count = 0
@@ -72,10 +97,11 @@ class SurfelShape(mi.Mesh):
 
     # ------------------------------------------------------------ interface
     @staticmethod
-    def from_params(params: SurfelParams, id: str = "surfels") -> "SurfelShape":
+    def from_params(params: SurfelParams, id: str = "surfels"):
+        """A ``surfels`` shape (of the active variant) holding ``params``."""
         props = mi.Properties("surfels")
         props.set_id(id)
-        return SurfelShape(props, params=params)
+        return shape_class()(props, params=params)
 
     def set_params(self, params: SurfelParams) -> None:
         """Replace all surfels (any count) and rebuild quads/BVH via the parent scene update."""
@@ -89,7 +115,7 @@ class SurfelShape(mi.Mesh):
     # -------------------------------------------------------- Mitsuba hooks
     def traverse(self, callback):
         if self._building:   # internal: expose the mesh buffers to rewrite them
-            super().traverse(callback)
+            _base(self).traverse(self, callback)
             return
         flags = mi.ParamFlags.Differentiable
         for f in field_names():
@@ -97,11 +123,11 @@ class SurfelShape(mi.Mesh):
 
     def parameters_changed(self, keys=[]):
         if self._building:
-            super().parameters_changed(keys)
+            _base(self).parameters_changed(self, keys)
             return
         if not keys or any(k in field_names() for k in keys):
             self._rebuild()
-        super().parameters_changed(keys)
+        _base(self).parameters_changed(self, keys)
 
     # ------------------------------------------------------------- building
     def _check_widths(self):
@@ -171,5 +197,18 @@ def quad_buffers(p: SurfelParams):
     return v, faces, bad
 
 
+@functools.cache
+def _make_class(variant: str):
+    return variant_class("SurfelShape", SurfelShapeBase, mi.Mesh)
+
+
+def shape_class():
+    """The ``SurfelShape`` class of the active variant (mi.Mesh is per variant).
+
+    Use ``isinstance(obj, SurfelShapeBase)`` to recognise surfels in any variant.
+    """
+    return _make_class(mi.variant())
+
+
 def register():
-    mi.register_shape("surfels", lambda props: SurfelShape(props))
+    mi.register_shape("surfels", lambda props: shape_class()(props))

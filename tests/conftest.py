@@ -1,0 +1,39 @@
+import numpy as np
+import pytest
+
+import comgs_dr
+
+
+@pytest.fixture(scope="session", autouse=True)
+def variant():
+    """Every test runs in llvm_ad_rgb (the first-class CPU target)."""
+    return comgs_dr.set_variant("llvm_ad_rgb")
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(1234)
+
+
+def random_surfels(rng, n=60, extent=0.5, scale=(0.05, 0.2), sh_degree=1, opacity=(0.5, 3.0)):
+    """Random surfels in a cube, as a SurfelParams (test helper)."""
+    from comgs_dr.surfels import SurfelParams
+    k = (sh_degree + 1) ** 2
+    return SurfelParams.from_numpy(
+        means=rng.uniform(-extent, extent, (n, 3)),
+        quats=rng.normal(size=(n, 4)),
+        log_scales=np.log(rng.uniform(scale[0], scale[1], (n, 2))),
+        opacity_logit=rng.uniform(opacity[0], opacity[1], n),
+        sh=rng.normal(0, 0.4, (n, k, 3)),
+        albedo=rng.uniform(0, 1, (n, 3)), roughness=rng.uniform(0, 1, n),
+        metallic=rng.uniform(0, 1, n))
+
+
+def error_chain_text(exc: BaseException) -> str:
+    """Messages of an exception and its causes (Mitsuba wraps plugin errors)."""
+    parts, seen = [], set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        parts.append(str(exc))
+        exc = exc.__cause__ or exc.__context__
+    return "\n".join(parts)

@@ -1,0 +1,93 @@
+"""The surfel_gbuffer integrator: hit buffer vs brute force, XML loading, gradients."""
+import numpy as np
+import pytest
+
+import drjit as dr
+import mitsuba as mi
+
+from comgs_dr import cameras
+from comgs_dr.integrators import common, compositing, gbuffer
+from comgs_dr.surfels import SurfelParams
+from comgs_dr.surfels.shape import SurfelShapeBase
+from conftest import error_chain_text, random_surfels
+from ref_numpy import render_rays
+
+
+def _rays(rng, n):
+    o = rng.uniform(-0.3, 0.3, (n, 3)) + np.array([0.0, -3.0, 0.0])
+    tgt = rng.uniform(-0.5, 0.5, (n, 3))
+    d = tgt - o
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return o, d
+
+
+def _fast(params, o, d, K, targets=gbuffer.TARGETS):
+    scene = cameras.gbuffer_scene(params, cameras.perspective([0, -3, 0], res=4))
+    shapes = common.surfel_shapes(scene, "test")
+    ray = mi.Ray3f(mi.Point3f(o.T.astype(np.float32)), mi.Vector3f(d.T.astype(np.float32)))
+    hits, buf, acc, _ = compositing.trace_composite(scene, shapes, ray, K, 1e-6, targets)
+    return hits, buf
+
+
+class TestHitBufferVsBruteForce:
+    @pytest.mark.parametrize("K", [4, 32])
+    def test_same_ordered_hits_and_values(self, rng, K):
+        params = random_surfels(rng, n=80, sh_degree=2)
+        o, d = _rays(rng, 300)
+        hits, buf = _fast(params, o, d, K)
+        ref = render_rays(params.to_numpy(), o, d, K=K)
+        ids = np.array(hits.ids).reshape(-1, K)
+        cnt = np.array(hits.count)
+        mism = [r for r in range(len(o)) if list(ids[r, :cnt[r]]) != ref["hits"][r]]
+        # Ties within float32 precision at the ±3σ boundary or α = 1/255 may differ:
+        # allow at most 1% of rays, and require that most rays hit something.
+        assert len(mism) <= 0.01 * len(o), f"{len(mism)} rays with different hit lists"
+        assert np.mean(cnt > 0) > 0.5
+        good = np.setdiff1d(np.arange(len(o)), mism)
+        for name, ch in [("color", 3), ("weight", 1), ("depth", 1), ("normal", 3), ("albedo", 3),
+                         ("roughness", 1), ("metallic", 1)]:
+            v = buf[name]
+            a = np.array(v).reshape(ch, -1).T if ch == 3 else np.array(v)[:, None]
+            np.testing.assert_allclose(a[good], ref[name][good], atol=2e-4, rtol=2e-4, err_msg=name)
+
+    def test_unbiased_depth_is_depth_over_weight(self, rng):
+        params = random_surfels(rng, n=40)
+        o, d = _rays(rng, 200)
+        _, buf = _fast(params, o, d, 16)
+        W, D, Du = (np.array(buf[k]) for k in ("weight", "depth", "depth_unbiased"))
+        m = W > 1e-3
+        np.testing.assert_allclose(Du[m], D[m] / W[m], rtol=1e-5)
+        assert np.all(Du[W <= 1e-6] == 0)
+
+    def test_ray_missing_everything(self, rng):
+        params = random_surfels(rng, n=10)
+        o = np.array([[0.0, -3.0, 0.0]])
+        d = np.array([[0.0, -1.0, 0.0]])                   # pointing away
+        hits, buf = _fast(params, o, d, 8)
+        assert int(hits.count[0]) == 0 and float(buf["weight"][0]) == 0.0
+
+
+def test_only_requested_targets_are_produced(rng):
+    params = random_surfels(rng, n=20)
+    scene = cameras.gbuffer_scene(params, cameras.perspective([0, -3, 0], res=8), targets="weight,normal")
+    integ = scene.integrator()
+    assert integ.aov_names() == ["weight", "normal.X", "normal.Y", "normal.Z"]
+    img = mi.render(scene)
+    assert img.shape == (8, 8, 3 + 4)
+    parts = integ.split(img)
+    assert set(parts) == {"weight", "normal"}
+    # Mitsuba re-raises constructor errors as RuntimeError with our message inside.
+    with pytest.raises((ValueError, RuntimeError), match="'targets' has unknown entries"):
+        cameras.gbuffer_scene(params, cameras.perspective([0, -3, 0], res=8), targets="colour")
+    with pytest.raises((ValueError, RuntimeError), match="'max_hits' must be"):
+        cameras.gbuffer_scene(params, cameras.perspective([0, -3, 0], res=8), max_hits=0)
+
+
+def test_non_surfel_shape_is_refused(rng):
+    params = random_surfels(rng, n=5)
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "surfel_gbuffer"},
+                          "s": SurfelShapeBase.from_params(params), "cube": {"type": "cube"},
+                          "sensor": cameras.perspective([0, -3, 0], res=4)})
+    with pytest.raises(Exception) as ei:
+        mi.render(scene)
+    assert "renders only 'surfels' shapes" in error_chain_text(ei.value)
