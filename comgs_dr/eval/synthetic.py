@@ -22,7 +22,7 @@ import json
 import os
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -251,10 +251,11 @@ def make_object_dataset(cfg: ObjectDatasetConfig, progress: bool = True) -> dict
     env_path = Path(cfg.envmap) if cfg.envmap is not None else default_envmap()
     if not mesh_path.is_file():
         raise FileNotFoundError(f"mesh file not found: {mesh_path}")
+    if not env_path.is_file():
+        raise FileNotFoundError(f"environment map not found: {env_path}")
     relight = _relight_paths(cfg.relight_envmaps)
-    env_bitmaps = {p: sio.load_envmap(p) for p in [env_path, *relight]}  # validate all first
-
     variant = sio.activate_variant(cfg.variant)
+    env_bitmaps = {p: sio.load_envmap(p) for p in [env_path, *relight]}  # validate all first
     raw = sio.load_mesh(mesh_path)
     obj_m, bound_r = object_transform(raw["vertices"], cfg.up_axis, cfg.half_extent)
     texture = _texture(cfg.texture, mesh_path, raw["has_uv"])
@@ -317,14 +318,18 @@ def make_object_dataset(cfg: ObjectDatasetConfig, progress: bool = True) -> dict
 
 
 def _relight_paths(maps) -> list[Path]:
+    """Existing files, or names of shared maps (``"venice_sunset_1k.hdr"``)."""
     if maps is None:
         paths = [shared_envmap(n) for n in HELDOUT_ENVMAPS]
         return paths if all(p.is_file() for p in paths) else []
-    paths = [Path(m) if (os.sep in str(m) or Path(m).is_file()) else shared_envmap(str(m))
-             for m in maps]
-    for p in paths:
+    paths = []
+    for m in maps:
+        p = Path(m)
+        if not p.is_file() and str(m) in TRAIN_ENVMAPS + HELDOUT_ENVMAPS:
+            p = shared_envmap(str(m))
         if not p.is_file():
             raise FileNotFoundError(f"relighting envmap not found: {p}")
+        paths.append(p)
     if len({p.stem for p in paths}) != len(paths):
         raise ValueError(f"relighting envmaps need distinct file names: {[str(p) for p in paths]}")
     return paths

@@ -77,8 +77,9 @@ def eval_surfel(shapes, slot, index, ray, active, mode=dr.ReduceMode.Auto) -> Su
                         slot=slot, valid=valid)
 
 
-def auto_epsilon(scene: mi.Scene) -> float:
-    """Default origin advance: 1e-5 of the scene's bounding-box diagonal."""
-    bb = scene.bbox()
-    diag = float(dr.norm(bb.max - bb.min)) if bb.valid() else 1.0
-    return max(1e-5 * diag, 1e-7)
+def auto_epsilon(scene: mi.Scene, shapes) -> float:
+    """Default origin advance: 1/200 of the smallest proxy depth jitter of the
+    surfel shapes, so coplanar surfels are found one by one (the tracer also
+    enforces a few float32 ulps of the origin per step)."""
+    jitter = min(s.proxy_jitter for s in shapes)
+    return max(5e-3 * jitter, 1e-12)

@@ -35,6 +35,7 @@ from . import common
 INVALID = 0xFFFFFFFF
 # Parameters that a target does not depend on (e.g. albedo for depth) are legal.
 _AD_FLAGS = dr.ADFlag.Default | dr.ADFlag.AllowNoGrad
+ULP_STEP = 2.0 ** -21          # ≈ 4 ulps of float32: the smallest origin advance that progresses
 BASE_TARGETS = ("color", "weight", "depth", "normal", "albedo", "roughness", "metallic")
 _VEC3 = ("color", "normal", "albedo")        # 3-channel buffers; the others are Float
 
@@ -113,6 +114,7 @@ def trace_composite(scene, shapes, ray, K: int, eps: float, targets, background=
         ids = dr.full(mi.UInt32, INVALID, R * K)
         slots = dr.zeros(mi.UInt32, R * K)
         ptrs = [mi.ShapePtr(s) for s in shapes]
+        o_mag = dr.max(dr.abs(ray.o))                                       # [R] (per ray)
         max_iter = 8 * K + 16   # guards against a ray stuck on degenerate geometry
 
         def cond(act, *_):
@@ -135,7 +137,9 @@ def trace_composite(scene, shapes, ray, K: int, eps: float, targets, background=
             acc = {k: dr.fma(vals[k], w, acc[k]) for k in names}
             count = dr.select(keep, count + 1, count)
             T = dr.select(keep, T * (1.0 - smp.alpha), T)
-            t_acc = dr.select(act, t_acc + pi.t + eps, t_acc)
+            # advance past the hit: ε, but at least ~4 float32 ulps of the new origin
+            step = dr.maximum(eps, (o_mag + t_acc + pi.t) * ULP_STEP)
+            t_acc = dr.select(act, t_acc + pi.t + step, t_acc)
             it = it + 1
             act = act & (count < K) & (T >= Kn.T_MIN) & (it < max_iter)
             return act, it, count, T, t_acc, acc

@@ -48,13 +48,18 @@ class SurfelGBufferBase:
        - K, the largest number of surfels composited per ray (Default: 32)
      * - epsilon
        - |float|
-       - Origin advance past each hit in scene units; ≤ 0 picks 1e-5 of the scene's
-         bounding-box diagonal (Default: -1)
+       - Origin advance past each hit in scene units; ≤ 0 picks 1/1000 of the
+         surfels' proxy depth jitter (see the ``surfels`` shape), at least 1e-7 of the
+         scene's bounding-box diagonal (Default: -1)
      * - targets
        - |string|
        - Comma-separated subset of ``color, weight, depth, depth_unbiased, normal,
          albedo, roughness, metallic`` or ``all`` (Default: all). Targets not asked
          for are not computed (no gathers, no AOV channels).
+     * - jitter
+       - |bool|
+       - Random sub-pixel positions at spp = 1 (Default: false: rays through pixel
+         centres, deterministic buffers as a rasteriser gives; spp > 1 always jitters)
      * - background
        - |float|
        - Grey level added to the colour as T_final · background (Default: 0)
@@ -82,6 +87,7 @@ class SurfelGBufferBase:
             raise ValueError(f"surfel_gbuffer: 'max_hits' must be in 1..1024, got {self.max_hits}")
         self.epsilon = float(props.get("epsilon", -1.0))
         self.targets = parse_targets(str(props.get("targets", "all")))
+        self.jitter = bool(props.get("jitter", False))
         self.background = float(props.get("background", 0.0))
         if not (self.background == self.background) or self.background < 0:
             raise ValueError(f"surfel_gbuffer: 'background' must be ≥ 0, got {self.background}")
@@ -115,7 +121,7 @@ class SurfelGBufferBase:
         shapes = common.surfel_shapes(scene, "surfel_gbuffer")
         ray = mi.Ray3f(dr.detach(ray))
         if mode == dr.ADMode.Primal:
-            eps = self.epsilon if self.epsilon > 0 else common.auto_epsilon(scene)
+            eps = self.epsilon if self.epsilon > 0 else common.auto_epsilon(scene, shapes)
             hits, out, acc, T = compositing.trace_composite(
                 scene, shapes, ray, self.max_hits, eps, self.targets, self.background, active)
             L = out.get("color", mi.Color3f(0.0))
@@ -130,6 +136,82 @@ class SurfelGBufferBase:
                                             None, self.background)
         L = tan.get("color", mi.Color3f(0.0))
         return mi.Spectrum(L), acc["weight"] > 0, self._flatten(tan), None
+
+    def sample_rays(self, scene, sensor, sampler):
+        """Camera rays, one per sample: through pixel centres unless ``jitter`` or spp > 1.
+
+        Returns (ray, weight, splatting position) like Mitsuba's ADIntegrator.
+        Deterministic rays make the primal and the derivative passes of
+        ``mi.render`` (which use different seeds) see the same G-buffer.
+        """
+        film = sensor.film()
+        size = film.crop_size()
+        spp = sampler.sample_count()
+        idx = dr.arange(mi.UInt32, size[0] * size[1] * spp) // spp
+        pix = mi.Vector2u(idx % size[0], idx // size[0]) + mi.Vector2u(film.crop_offset())
+        offset = sampler.next_2d() if (self.jitter or spp > 1) else mi.Vector2f(0.5)
+        pos_f = mi.Vector2f(pix) + offset
+        full = mi.ScalarVector2f(film.size())
+        aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Vector2f(0.5)
+        with dr.resume_grad():
+            ray, weight = sensor.sample_ray_differential(
+                time=sensor.shutter_open(), sample1=sampler.next_1d() if mi.is_spectral else 0.0,
+                sample2=pos_f / full, sample3=aperture)
+        splat = mi.Vector2f(pix) if film.rfilter().is_box_filter() else pos_f
+        return ray, weight, splat
+
+    # Mitsuba 3.9.1's RBIntegrator multiplies AOV samples by the (Spectrum) ray
+    # weight before ``ImageBlock.put``, which then rejects the list whenever AOVs
+    # exist; both derivative renders are therefore implemented here with the
+    # scalar weight of RGB rays.
+    def _splat(self, film, pos, rgb, valid, aovs, weight):
+        block = film.create_block()
+        w = mi.Float(weight[0]) if dr.size_v(weight) > 1 else mi.Float(weight)
+        ones = dr.full(mi.Float, 1.0, dr.width(pos))
+        rgb = mi.Color3f(rgb) * w
+        alpha = [dr.select(valid, 1.0, 0.0)] if mi.has_flag(film.flags(), mi.FilmFlags.Alpha) else []
+        block.put(pos, [rgb.x, rgb.y, rgb.z, *alpha, ones, *[a * w for a in aovs]])
+        film.put_block(block)
+        return film.develop()
+
+    def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
+        """Forward-mode derivative image (tangents of every channel)."""
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        film = sensor.film()
+        with dr.suspend_grad():
+            sampler, spp = self.prepare(sensor, seed, spp, self.aov_names())
+            ray, weight, pos = self.sample_rays(scene, sensor, sampler)
+            _, _, _, state = self.sample(dr.ADMode.Primal, scene, sampler.clone(), ray,
+                                         active=mi.Bool(True))
+            δL, valid, δaovs, _ = self.sample(dr.ADMode.Forward, scene, sampler, ray,
+                                              state_in=state, active=mi.Bool(True))
+            return self._splat(film, pos, δL, valid, δaovs, weight)
+
+    def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
+        """Reverse mode: image adjoint → per-sample adjoints → surfel parameter gradients."""
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        film = sensor.film()
+        with dr.suspend_grad():
+            sampler, spp = self.prepare(sensor, seed, spp, self.aov_names())
+            ray, weight, pos = self.sample_rays(scene, sensor, sampler)
+            n = dr.width(pos)
+            with dr.resume_grad():   # adjoint of splatting + development
+                L = dr.full(mi.Color3f, 1.0, n)
+                aovs = [dr.full(mi.Float, 1.0, n) for _ in self.aov_names()]
+                dr.enable_grad(L, aovs)
+                image = self._splat(film, pos, L, mi.Bool(True), aovs, weight)
+                dr.set_grad(image, grad_in)
+                dr.enqueue(dr.ADMode.Backward, image)
+                dr.traverse(dr.ADMode.Backward)
+                δL, δaovs = dr.grad(L), [dr.grad(a) for a in aovs]
+            film.clear()
+            _, _, _, state = self.sample(dr.ADMode.Primal, scene, sampler.clone(), ray,
+                                         active=mi.Bool(True))
+            self.sample(dr.ADMode.Backward, scene, sampler, ray, δL=δL, δaovs=δaovs,
+                        state_in=state, active=mi.Bool(True))
+            dr.eval()
 
     def _flatten(self, out: dict) -> list:
         aovs = []

@@ -4,6 +4,13 @@ Each surfel is traced as one quad (2 triangles) spanning ±3σ in its tangent
 plane; ``surfel = prim_index // 2``. The quad is only the ray-tracing proxy:
 integrators recompute t, (u, v) and α analytically from the parameters (see
 :mod:`comgs_dr.surfels.kernel`), which is what makes them differentiable.
+
+Coplanar surfels (flat faces of ``from_mesh``, clones of densification) would
+share one hit distance, and a tracer that advances the ray by ε past each hit
+would find only one of them. Each proxy quad is therefore shifted along its
+normal by a deterministic per-surfel offset in ±``proxy_jitter``/2
+(PROXY_JITTER · bounding-box diagonal); the integrators advance by 1/1000 of
+that, and all their values still come from the unshifted analytic surfel.
 """
 from __future__ import annotations
 
@@ -40,6 +47,9 @@ def is_kind(obj, methods: type) -> bool:
 
 def is_surfel_shape(obj) -> bool:
     return is_kind(obj, SurfelShapeBase)
+
+
+PROXY_JITTER = 1e-4        # proxy depth offsets span this fraction of the surfels' bbox diagonal
 
 
 class SurfelShapeBase:
@@ -150,7 +160,10 @@ class SurfelShapeBase:
         n = self._check_widths()
         with dr.suspend_grad():
             p = self.params
-            vertices, faces, bad = quad_buffers(p)
+            ext = [float((dr.max(c) - dr.min(c))[0]) for c in (p.means.x, p.means.y, p.means.z)]
+            diag = sum(e * e for e in ext) ** 0.5
+            self.proxy_jitter = PROXY_JITTER * (diag if diag > 0 and diag == diag and diag < 1e30 else 1.0)
+            vertices, faces, bad = quad_buffers(p, self.proxy_jitter)
             self.nonfinite_count = int(dr.count(bad)[0]) if dr.width(bad) else 0
             if self.nonfinite_count:
                 mi.Log(mi.LogLevel.Warn, f"surfels '{self.id()}': {self.nonfinite_count} surfel(s) "
@@ -169,9 +182,11 @@ class SurfelShapeBase:
         return f"SurfelShape[id={self.id()}, surfels={self.params.count}, sh_degree={self.params.sh_degree}]"
 
 
-def quad_buffers(p: SurfelParams):
+def quad_buffers(p: SurfelParams, jitter: float = 0.0):
     """Proxy geometry: ([4N] Point3f vertices, [2N] Vector3u faces, [N] Bool non-finite).
 
+    Surfel i's quad is offset along its normal by jitter·(hash(i) − 0.5), with a
+    multiplicative integer hash in [0, 1).
     Surfels whose peak opacity is below ALPHA_MIN, or whose parameters are not
     finite, collapse to a zero-area quad and can never be hit.
     """
@@ -182,11 +197,13 @@ def quad_buffers(p: SurfelParams):
     q = dr.gather(mi.Vector4f, p.quats, s_idx)
     ls = dr.gather(mi.Vector2f, p.log_scales, s_idx)
     op = K.opacity(dr.gather(mi.Float, p.opacity_logit, s_idx))
-    t_u, t_v, _ = K.quat_frame(q)
+    t_u, t_v, nrm = K.quat_frame(q)
     s = K.scales(ls) * K.QUAD_SIGMA
     a = dr.select((corner == 1) | (corner == 2), 1.0, -1.0)
     b = dr.select(corner >= 2, 1.0, -1.0)
-    v = mean + t_u * (a * s.x) + t_v * (b * s.y)
+    hashed = mi.Float((s_idx * 2654435761) >> 8) * (1.0 / (1 << 24))       # [4N] in [0, 1)
+    shift = jitter * (hashed - 0.5)
+    v = mean + t_u * (a * s.x) + t_v * (b * s.y) + nrm * shift
     finite = dr.all(dr.isfinite(v)) & dr.all(dr.isfinite(q)) & dr.isfinite(op)
     keep = finite & (op >= K.ALPHA_MIN)
     v = dr.select(keep, v, dr.select(dr.all(dr.isfinite(mean)), mean, mi.Point3f(0.0)))
