@@ -45,8 +45,9 @@ def set_variant(name: str = "auto") -> str:
                          f"has {', '.join(available)}")
     if name.startswith("cuda_") and not dr.has_backend(dr.JitBackend.CUDA):
         raise RuntimeError(f"set_variant('{name}'): no CUDA device/driver is available")
-    if "_ad_" not in name:
-        raise ValueError(f"set_variant('{name}'): comgs_dr needs an AD variant (e.g. llvm_ad_rgb)")
+    if not _plugins.is_supported_variant(name):
+        raise ValueError(f"set_variant('{name}'): comgs_dr runs in llvm_ad_rgb or cuda_ad_rgb "
+                         "(RGB + AD JIT variants)")
     mi.set_variant(name)
     _plugins.register_all()  # also done by the variant callback; idempotent
     return name

@@ -31,7 +31,8 @@ def _add_make_dataset(sub) -> None:
     o.add_argument("--views", type=int, dest="n_train", help="training views (default 100)")
     o.add_argument("--test-views", type=int, dest="n_test", help="test views (default 24)")
     o.add_argument("--res", type=int, dest="resolution", help="image side in pixels (default 128)")
-    o.add_argument("--spp", type=int, help="samples per pixel (default 64)")
+    o.add_argument("--spp", type=int, help="samples per pixel of training views (default 64; "
+                   "test views use twice as many)")
     o.add_argument("--relight", nargs="*", metavar="MAP",
                    help="env maps for relit test views (default: the held-out shared maps; "
                         "give the flag alone for none)")

@@ -13,14 +13,14 @@ _callback_installed = False
 
 
 def is_supported_variant(name: str | None) -> bool:
-    """JIT + AD RGB variants run our kernels (llvm_ad_rgb, cuda_ad_rgb, and mono/spectral AD)."""
-    return bool(name) and ("_ad_" in name) and not name.startswith("scalar")
+    """Our kernels run in the JIT + AD RGB variants: llvm_ad_rgb and cuda_ad_rgb."""
+    return name in ("llvm_ad_rgb", "cuda_ad_rgb")
 
 
 def _refuse(kind: str, plugin: str):
     def factory(props):
         raise RuntimeError(
-            f"comgs_dr {kind} '{plugin}' needs a JIT AD variant (llvm_ad_rgb or cuda_ad_rgb); "
+            f"comgs_dr {kind} '{plugin}' needs the llvm_ad_rgb or cuda_ad_rgb variant; "
             f"the active variant is '{mi.variant()}'. Call comgs_dr.set_variant('auto').")
     return factory
 

@@ -97,7 +97,7 @@ class ObjectDatasetConfig:
     n_test: int = 24
     resolution: int = 128
     spp: int = 64
-    spp_test: int | None = None          # None: same as spp
+    spp_test: int | None = None          # None: 2 * spp (test ground truth)
     spp_aov: int = 32
     max_depth: int = 8
     relight_envmaps: tuple | list | None = None
@@ -279,7 +279,7 @@ def make_object_dataset(cfg: ObjectDatasetConfig, progress: bool = True) -> dict
                          metallic=cfg.metallic, resolution=cfg.resolution, fov_deg=cfg.fov_deg,
                          max_depth=cfg.max_depth, envmap_to_world=ENVMAP_TO_WORLD,
                          envmap_scale=cfg.envmap_scale)
-    spp_test = cfg.spp_test or cfg.spp
+    spp_test = cfg.spp_test or 2 * cfg.spp
     seed0 = (int(cfg.seed) * 1_000_003) % 2**31
     renderer = sio.Renderer(spec, env_bitmaps[env_path])
     for split, spp in (("train", cfg.spp), ("test", spp_test)):
@@ -356,8 +356,8 @@ def _bar(items, desc, enabled):
 
 def _frame_json(cam: dict) -> dict:
     d = {"file_path": cam["file_path"],
-         "transform_matrix": cam["transform_matrix"].tolist(),
-         "to_world_mitsuba": cam["to_world_mitsuba"].tolist(),
+         "transform_matrix": (cam["transform_matrix"] + 0.0).tolist(),  # + 0.0: no -0.0
+         "to_world_mitsuba": (cam["to_world_mitsuba"] + 0.0).tolist(),
          "elevation_deg": cam["elevation_deg"], "azimuth_deg": cam["azimuth_deg"]}
     for key in ("radiance_path", "albedo_path", "normal_path", "depth_path", "relight"):
         if key in cam:

@@ -187,8 +187,9 @@ def quad_buffers(p: SurfelParams, jitter: float = 0.0):
 
     Surfel i's quad is offset along its normal by jitter·(hash(i) − 0.5), with a
     multiplicative integer hash in [0, 1).
-    Surfels whose peak opacity is below ALPHA_MIN, or whose parameters are not
-    finite, collapse to a zero-area quad and can never be hit.
+    Surfels whose peak opacity is below ALPHA_MIN, or with any non-finite
+    parameter (geometry, colour or material), collapse to a zero-area quad and
+    can never be hit, so they cannot put NaN into any buffer.
     """
     n = dr.width(p.opacity_logit)
     idx = dr.arange(mi.UInt32, 4 * n)
@@ -204,7 +205,7 @@ def quad_buffers(p: SurfelParams, jitter: float = 0.0):
     hashed = mi.Float((s_idx * 2654435761) >> 8) * (1.0 / (1 << 24))       # [4N] in [0, 1)
     shift = jitter * (hashed - 0.5)
     v = mean + t_u * (a * s.x) + t_v * (b * s.y) + nrm * shift
-    finite = dr.all(dr.isfinite(v)) & dr.all(dr.isfinite(q)) & dr.isfinite(op)
+    finite = dr.all(dr.isfinite(v)) & dr.all(dr.isfinite(q)) & dr.isfinite(op) & _finite_rest(p, s_idx)
     keep = finite & (op >= K.ALPHA_MIN)
     v = dr.select(keep, v, dr.select(dr.all(dr.isfinite(mean)), mean, mi.Point3f(0.0)))
     f = dr.arange(mi.UInt32, 2 * n)
@@ -225,6 +226,16 @@ def shape_class():
     Use ``isinstance(obj, SurfelShapeBase)`` to recognise surfels in any variant.
     """
     return _make_class(mi.variant())
+
+
+def _finite_rest(p: SurfelParams, s_idx):
+    """[4N] Bool: colour and material parameters of the surfel are finite."""
+    ok = dr.all(dr.isfinite(dr.gather(mi.Color3f, p.albedo, s_idx)))
+    ok &= dr.isfinite(dr.gather(mi.Float, p.roughness, s_idx) + dr.gather(mi.Float, p.metallic, s_idx))
+    kc = p.sh_coeffs
+    for k in range(kc):
+        ok &= dr.all(dr.isfinite(dr.gather(mi.Color3f, p.sh, s_idx * kc + k)))
+    return ok
 
 
 def register():
