@@ -25,18 +25,23 @@ def _add_make_dataset(sub) -> None:
                     "training views, test views on three latitude circles, G-buffer ground "
                     "truth and relit test views. Omitted values use the defaults of "
                     "comgs_dr.eval.synthetic.ObjectDatasetConfig.")
-    o.add_argument("--mesh", help="OBJ/PLY mesh (default: the shared Spot mesh, if present)")
-    o.add_argument("--envmap", help="HDR/EXR lighting (default: a shared training map)")
-    o.add_argument("--out", required=True, help="output directory")
-    o.add_argument("--views", type=int, dest="n_train", help="training views (default 100)")
-    o.add_argument("--test-views", type=int, dest="n_test", help="test views (default 24)")
-    o.add_argument("--res", type=int, dest="resolution", help="image side in pixels (default 128)")
-    o.add_argument("--spp", type=int, help="samples per pixel of training views (default 64; "
-                   "test views use twice as many)")
+    o.add_argument("--mesh", metavar="M",
+                   help="OBJ/PLY mesh (default: the shared Spot mesh, if present)")
+    o.add_argument("--envmap", metavar="E",
+                   help="HDR/EXR lighting (default: a shared training map)")
+    o.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    o.add_argument("--views", type=int, dest="n_train", metavar="N",
+                   help="training views (default 100)")
+    o.add_argument("--test-views", type=int, dest="n_test", metavar="N",
+                   help="test views (default 24)")
+    o.add_argument("--res", type=int, dest="resolution", metavar="R",
+                   help="image side in pixels (default 128)")
+    o.add_argument("--spp", type=int, metavar="S", help="samples per pixel of training views "
+                   "(default 64; test views use twice as many)")
     o.add_argument("--relight", nargs="*", metavar="MAP",
                    help="env maps for relit test views (default: the held-out shared maps; "
                         "give the flag alone for none)")
-    o.add_argument("--seed", type=int, help="camera/noise seed (default 0)")
+    o.add_argument("--seed", type=int, metavar="S", help="camera/noise seed (default 0)")
     o.add_argument("--no-texture", action="store_true", help="ignore the mesh texture")
     o.add_argument("--up", choices=("y", "z"), dest="up_axis", help="up axis of the mesh file "
                    "(default y)")

@@ -12,7 +12,10 @@ import pytest
 import comgs_dr
 
 trimesh = pytest.importorskip("trimesh")
-MESHES = "/work/shared/data/meshes"
+from comgs_dr.eval.synthetic import shared_data_dir  # noqa: E402
+
+MESHES = str(shared_data_dir() / "meshes")
+needs_meshes = pytest.mark.skipif(not os.path.isdir(MESHES), reason=f"shared sample meshes not found at {MESHES}")
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -61,6 +64,7 @@ def test_seed_determinism():
     assert np.array_equal(a, b) and not np.array_equal(a, c)
 
 
+@needs_meshes
 def test_frames_match_faces():
     from_mesh, io, *_ = _fm()
     m = trimesh.load(os.path.join(MESHES, "suzanne.obj"))
@@ -110,6 +114,7 @@ def test_scene_input_area_split():
 
 
 # ------------------------------------------------------------------ albedo
+@needs_meshes
 def test_albedo_from_spot_texture():
     from_mesh, _, _, linear_to_srgb, _ = _fm()
     from comgs_dr.surfels.kernel import SH_C0
@@ -124,6 +129,7 @@ def test_albedo_from_spot_texture():
     assert np.allclose(d["sh"][:, 0] * SH_C0 + 0.5, linear_to_srgb(a), atol=1e-5)
 
 
+@needs_meshes
 def test_spot_without_texture_is_grey(caplog):
     """An OBJ without mtllib gets trimesh's placeholder material: reported, albedo 0.5."""
     from_mesh, *_ = _fm()
@@ -196,6 +202,7 @@ def test_errors(tmp_path):
         from_mesh(np.zeros((3, 3)), 10)
 
 
+@needs_meshes
 def test_loads_meshes_from_paths():
     from_mesh, *_ = _fm()
     for name in ("teapot.obj", "suzanne.obj"):
@@ -240,10 +247,10 @@ def test_coverage_icosphere():
     assert outside < 0.01
 
 
-@pytest.mark.xfail(reason="surfel_gbuffer's hit buffer advances the origin by t+eps, so exactly "
-                          "coplanar surfels (several on one flat face) are found only once; "
-                          "suzanne measures ~0.82 (0.99 with a 1e-3·σ normal jitter)", strict=False)
+@needs_meshes
 def test_coverage_suzanne():
+    """Flat faces put many exactly coplanar surfels on one plane: the tracer must find
+    each of them (proxy depth jitter in the `surfels` shape), else coverage drops to ~0.8."""
     tm = trimesh.load(os.path.join(MESHES, "suzanne.obj"))
     tm.apply_translation(-tm.bounds.mean(0))
     tm.apply_scale(2.0 / np.max(tm.extents))

@@ -38,8 +38,9 @@ TRAIN_ENVMAPS = ("forest_slope_1k.hdr", "adams_place_bridge_1k.hdr",
 HELDOUT_ENVMAPS = ("st_fagans_interior_1k.hdr", "venice_sunset_1k.hdr")
 DEFAULT_ENVMAP = TRAIN_ENVMAPS[0]
 DEFAULT_MESH = "meshes/spot_triangulated.obj"
-#: Directory of the shared sample data; override with $COMGS_DATA_DIR.
-DEFAULT_DATA_DIR = "/work/shared/data"
+#: Directory of the shared sample data, beside a source checkout (``<repo>/../shared/data``);
+#: override with $COMGS_DATA_DIR.
+DEFAULT_DATA_DIR = str(Path(__file__).resolve().parents[3] / "shared" / "data")
 
 #: Equirect orientation (Blender's, Z-up): world direction d maps to
 #: u = 0.5 - atan2(d_y, d_x) / 2pi, v = acos(d_z) / pi (v = 0 is the top row).
@@ -52,7 +53,7 @@ GL_FROM_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])  # flips camera X and Z (self-
 
 
 def shared_data_dir() -> Path:
-    """The shared sample-data directory ($COMGS_DATA_DIR or /work/shared/data); may not exist."""
+    """The shared sample-data directory ($COMGS_DATA_DIR or ``<repo>/../shared/data``); may not exist."""
     return Path(os.environ.get("COMGS_DATA_DIR", DEFAULT_DATA_DIR))
 
 
@@ -130,9 +131,11 @@ class ObjectDatasetConfig:
         if self.spp_test is not None and int(self.spp_test) < 1:
             raise ValueError(f"ObjectDatasetConfig.spp_test must be >= 1 (got {self.spp_test})")
         if not 1.0 < float(self.fov_deg) < 170.0:
-            raise ValueError(f"ObjectDatasetConfig.fov_deg must be in (1, 170) (got {self.fov_deg})")
+            raise ValueError("ObjectDatasetConfig.fov_deg must be in (1, 170) "
+                             f"(got {self.fov_deg})")
         if self.up_axis not in ("y", "z"):
-            raise ValueError(f"ObjectDatasetConfig.up_axis must be 'y' or 'z' (got {self.up_axis!r})")
+            raise ValueError("ObjectDatasetConfig.up_axis must be 'y' or 'z' "
+                             f"(got {self.up_axis!r})")
         lo, hi = self.train_elevation_deg
         if not -90.0 <= lo <= hi <= 90.0:
             raise ValueError("ObjectDatasetConfig.train_elevation_deg must satisfy "
@@ -280,16 +283,18 @@ def make_object_dataset(cfg: ObjectDatasetConfig, progress: bool = True) -> dict
                          max_depth=cfg.max_depth, envmap_to_world=ENVMAP_TO_WORLD,
                          envmap_scale=cfg.envmap_scale)
     spp_test = cfg.spp_test or 2 * cfg.spp
-    seed0 = (int(cfg.seed) * 1_000_003) % 2**31
+
+    def seed(i: int, kind: int) -> int:  # distinct noise per render: kind 0 train, 1 test,
+        return (int(cfg.seed) * 1_000_003 + 256 * i + kind) % 2**32  # 2 AOV, 3+k relight k
     renderer = sio.Renderer(spec, env_bitmaps[env_path])
     for split, spp in (("train", cfg.spp), ("test", spp_test)):
         for i, cam in enumerate(_bar(cams[split], f"{split} views", progress)):
-            rgba = renderer.radiance(cam["to_world_mitsuba"], spp, seed0 + 7 * i + (split == "test"))
+            rgba = renderer.radiance(cam["to_world_mitsuba"], spp, seed(i, int(split == "test")))
             cam["file_path"] = f"./{split}/r_{i}"
             sio.write_png(out / f"{split}/r_{i}.png", rgba)
             if split == "test":
                 sio.write_exr(out / f"test/r_{i}.exr", rgba)
-                gt = renderer.gbuffer(cam["to_world_mitsuba"], cfg.spp_aov, seed0 + 7 * i + 2)
+                gt = renderer.gbuffer(cam["to_world_mitsuba"], cfg.spp_aov, seed(i, 2))
                 for key in ("albedo", "normal", "depth"):
                     sio.write_exr(out / f"test/r_{i}_{key}.exr", gt[key])
                     cam[f"{key}_path"] = f"./test/r_{i}_{key}.exr"
@@ -297,7 +302,7 @@ def make_object_dataset(cfg: ObjectDatasetConfig, progress: bool = True) -> dict
     for k, (name, path) in enumerate(zip(relight_names, relight)):
         renderer.set_envmap(env_bitmaps[path])
         for i, cam in enumerate(_bar(cams["test"], f"relight {name}", progress)):
-            rgba = renderer.radiance(cam["to_world_mitsuba"], spp_test, seed0 + 7 * i + 3 + k * 7919)
+            rgba = renderer.radiance(cam["to_world_mitsuba"], spp_test, seed(i, 3 + k))
             stem = out / f"test_relight/{name}/r_{i}"
             sio.write_png(stem.with_suffix(".png"), rgba)
             sio.write_exr(stem.with_suffix(".exr"), rgba)
