@@ -43,3 +43,19 @@ def gbuffer_scene(surfels, sensors, **integrator_props) -> mi.Scene:
     for i, s in enumerate(sensors):
         d[f"sensor_{i:03d}"] = s
     return mi.load_dict(d)
+
+
+def from_matrix(to_world, fov_x_deg: float, res: int | tuple[int, int], spp: int = 1) -> dict:
+    """A ``perspective`` sensor dict from a Mitsuba camera-to-world 4x4 (+Z forward)."""
+    import numpy as np
+    m = np.asarray(to_world, dtype=float)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise ValueError(f"from_matrix: expected a finite 4x4 matrix, got shape {m.shape}")
+    w, h = (res, res) if isinstance(res, int) else res
+    return {
+        "type": "perspective", "fov": float(fov_x_deg), "fov_axis": "x",
+        "to_world": mi.ScalarTransform4f(m.tolist()),
+        "sampler": {"type": "independent", "sample_count": int(spp)},
+        "film": {"type": "hdrfilm", "width": int(w), "height": int(h),
+                 "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+    }
