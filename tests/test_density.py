@@ -1,0 +1,89 @@
+"""Adaptive density control on a toy case: counts, parameter/optimiser alignment."""
+import numpy as np
+import pytest
+
+import drjit as dr
+import mitsuba as mi
+
+from comgs_dr.surfels import SurfelParams
+from comgs_dr.surfels.density import DensityConfig, DensityController, field_to_numpy
+from comgs_dr.surfels.params import field_names
+
+
+def _toy():
+    n = 6
+    means = np.c_[np.arange(n, dtype=np.float32), np.zeros((n, 2))]
+    ls = np.log(np.full((n, 2), 0.005))
+    ls[1] = np.log([0.05, 0.02])          # large: split
+    ls[3] = np.log([5.0, 5.0])            # huge: pruned
+    op = np.full(n, 2.0)
+    op[2] = -8.0                          # transparent: pruned
+    sh = np.arange(n, dtype=np.float32)[:, None, None] * np.ones((n, 1, 3))
+    return SurfelParams.from_numpy(means, np.tile([1, 0, 0, 0], (n, 1)), ls, op, sh)
+
+
+def test_clone_split_prune_counts_and_alignment():
+    p = _toy()
+    ctl = DensityController(DensityConfig(grad_threshold=1e-3, percent_dense=0.01), p.count, extent=1.0)
+    grads = np.zeros((6, 3))
+    grads[0] = [1, 0, 0]                  # hot + small -> clone (lateral to the view)
+    grads[1] = [0, 0, 1]                  # hot + large -> split
+    grads[4] = [1e-6, 0, 0]               # cold
+    ctl.accumulate(grads, field_to_numpy("means", p.means, 6), np.array([0.0, -10.0, 0.0]), 0.5)
+    opt = mi.ad.Adam(lr=0.1)
+    keys = {f: f for f in field_names()}
+    for f in field_names():
+        opt[f] = getattr(p, f)
+    # give every surfel distinct moments: m = v = its index (per component)
+    for f in field_names():
+        value, promoted, lr, (t, m, v, vm) = opt.state[f]
+        idx = np.arange(6, dtype=np.float32)
+        a = np.broadcast_to(idx[:, None], field_to_numpy(f, m, 6).shape) if field_to_numpy(f, m, 6).ndim == 2 \
+            else idx
+        from comgs_dr.surfels.density import field_from_numpy
+        opt.state[f] = (value, promoted, lr, (t, field_from_numpy(f, a, m), field_from_numpy(f, a + 100, m), vm))
+    out, stats = ctl.densify_and_prune(p, opt, keys, rng=np.random.default_rng(0))
+    assert stats == {"cloned": 1, "split": 1, "pruned": 2, "total": 6 - 1 - 2 + 1 + 2}
+    q = out.to_numpy()
+    # survivors in order: 0, 4, 5, clone of 0, two children of 1
+    np.testing.assert_array_equal(q["sh"][:, 0, 0], [0, 4, 5, 0, 1, 1])
+    children = q["means"][4:]
+    assert np.all(np.abs(children[:, 0] - 1.0) < 0.3) and not np.allclose(children[0], children[1])
+    np.testing.assert_allclose(q["log_scales"][4:], np.log(np.array([0.05, 0.02]) / 1.6)[None].repeat(2, 0),
+                               rtol=1e-5)
+    for f in field_names():
+        assert np.array_equal(np.asarray(opt[f]), np.asarray(getattr(out, f))), f
+        value, promoted, lr, (t, m, v, vm) = opt.state[f]
+        mm = field_to_numpy(f, m, 6)
+        mm = mm[:, 0] if mm.ndim == 2 else mm
+        np.testing.assert_array_equal(mm, [0, 4, 5, 0, 0, 0], err_msg=f)   # new surfels: zero moments
+        assert dr.width(v) == dr.width(getattr(out, f))
+    # the optimiser still steps with the new sizes
+    for f in field_names():
+        dr.set_grad(opt[f], 1.0)
+    opt.step()
+    assert dr.width(opt["means"]) == 6
+
+
+def test_opacity_reset_caps_and_zeroes_moments():
+    p = _toy()
+    ctl = DensityController(DensityConfig(), p.count, extent=1.0)
+    opt = mi.ad.Adam(lr=0.1)
+    opt["opacity_logit"] = p.opacity_logit
+    dr.set_grad(opt["opacity_logit"], 1.0)
+    opt.step()
+    out = ctl.reset_opacity(p, opt, {"opacity_logit": "opacity_logit"})
+    o = 1 / (1 + np.exp(-np.asarray(out.opacity_logit)))
+    assert o.max() <= 0.01 + 1e-6 and o[2] < 0.001
+    assert np.all(np.asarray(opt.state["opacity_logit"][3][1]) == 0)
+
+
+def test_everything_pruned_is_an_error():
+    p = _toy()
+    d = p.to_numpy()
+    d["opacity_logit"][:] = -20
+    ctl = DensityController(DensityConfig(), 6, extent=1.0)
+    with pytest.raises(RuntimeError, match="every surfel would be pruned"):
+        ctl.densify_and_prune(SurfelParams.from_numpy(**d))
+    with pytest.raises(ValueError, match="extent"):
+        DensityController(DensityConfig(), 6, extent=0.0)
