@@ -1,0 +1,48 @@
+"""Image and geometry metrics (numpy): PSNR, SSIM (3DGS convention), normal MAE, depth error."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def psnr(img: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """PSNR in dB of [H, W, 3] images in [0, 1] (img clipped), optionally over a mask."""
+    d = (np.clip(img[..., :3], 0, 1) - ref[..., :3]) ** 2
+    mse = float(d[mask > 0.5].mean()) if mask is not None else float(d.mean())
+    return 10 * math.log10(1.0 / max(mse, 1e-12))
+
+
+def ssim(img: np.ndarray, ref: np.ndarray, window: int = 11, sigma: float = 1.5) -> float:
+    """Mean SSIM with a Gaussian window and zero padding (the 3DGS/2DGS evaluation code)."""
+    from scipy.ndimage import convolve1d
+    x = np.clip(img[..., :3].astype(np.float64), 0, 1)
+    y = ref[..., :3].astype(np.float64)
+    g = np.exp(-((np.arange(window) - window // 2) ** 2) / (2 * sigma ** 2))
+    g /= g.sum()
+
+    def blur(a):
+        a = convolve1d(a, g, axis=0, mode="constant")
+        return convolve1d(a, g, axis=1, mode="constant")
+    mx, my = blur(x), blur(y)
+    sxx, syy, sxy = blur(x * x) - mx * mx, blur(y * y) - my * my, blur(x * y) - mx * my
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+    return float(s.mean())
+
+
+def normal_mae_deg(n: np.ndarray, n_gt: np.ndarray, mask: np.ndarray) -> float:
+    """Mean angular error in degrees between normal maps [H, W, 3] over mask > 0.5."""
+    a = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)
+    b = n_gt / np.maximum(np.linalg.norm(n_gt, axis=-1, keepdims=True), 1e-8)
+    cos = np.clip((a * b).sum(-1), -1, 1)[mask > 0.5]
+    return float(np.degrees(np.arccos(cos)).mean()) if cos.size else float("nan")
+
+
+def depth_errors(d: np.ndarray, d_gt: np.ndarray, mask: np.ndarray) -> dict:
+    """Absolute and relative depth errors over mask > 0.5 (depth = ray distance)."""
+    m = (mask > 0.5) & (d_gt > 0)
+    if not m.any():
+        return {"depth_mae": float("nan"), "depth_rel": float("nan")}
+    e = np.abs(d[m] - d_gt[m])
+    return {"depth_mae": float(e.mean()), "depth_rel": float((e / d_gt[m]).mean())}

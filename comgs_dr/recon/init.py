@@ -1,0 +1,99 @@
+"""Initial surfels for reconstruction step 1: from points, a visual hull, a box/sphere or a PLY."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..surfels.params import SurfelParams
+from ..surfels.kernel import SH_C0
+
+
+def random_quaternions(n: int, rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=(n, 4))
+    return (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
+
+
+def nn_scale(points: np.ndarray, k: int = 3) -> np.ndarray:
+    """3DGS scale init: RMS distance to the k nearest neighbours ([N])."""
+    from scipy.spatial import cKDTree
+    d, _ = cKDTree(points).query(points, k=k + 1)
+    s = np.sqrt(np.mean(d[:, 1:] ** 2, axis=1))
+    return np.maximum(s, 1e-7).astype(np.float32)
+
+
+def surfels_from_points(points: np.ndarray, colors: np.ndarray | None, rng: np.random.Generator,
+                        sh_degree: int = 0, opacity: float = 0.1) -> SurfelParams:
+    """Random orientations, NN-based sizes, colour from ``colors`` (display values in [0,1]) or grey."""
+    pts = np.asarray(points, np.float32)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 4 or not np.all(np.isfinite(pts)):
+        raise ValueError(f"surfels_from_points: need ≥ 4 finite points [N, 3], got {pts.shape}")
+    n = len(pts)
+    s = nn_scale(pts)
+    k = (sh_degree + 1) ** 2
+    sh = np.zeros((n, k, 3), np.float32)
+    if colors is not None:
+        sh[:, 0] = (np.clip(np.asarray(colors, np.float32), 0, 1) - 0.5) / SH_C0
+    return SurfelParams.from_numpy(
+        means=pts, quats=random_quaternions(n, rng), log_scales=np.log(np.c_[s, s]),
+        opacity_logit=np.full(n, np.log(opacity / (1 - opacity)), np.float32), sh=sh)
+
+
+def visual_hull_points(views, n: int, center: np.ndarray, radius: float, rng: np.random.Generator,
+                       min_fraction: float = 0.95, max_tries: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """Space carving: uniform points in the bounding sphere kept where they project inside
+    the masks of ≥ ``min_fraction`` of the views that see them; colour from one such view.
+
+    Returns (points [M, 3], colours [M, 3]); M ≤ n.
+    """
+    keep_p, keep_c = [], []
+    total = 0
+    for _ in range(max_tries):
+        cand = rng.normal(size=(4 * n, 3))
+        cand = cand / np.linalg.norm(cand, axis=1, keepdims=True) * radius * rng.uniform(0, 1, (4 * n, 1)) ** (1 / 3)
+        cand = cand + center
+        inside = np.zeros(len(cand), np.int32)
+        seen = np.zeros(len(cand), np.int32)
+        color = np.full((len(cand), 3), 0.5, np.float32)
+        for v in views:
+            px, py, ok = project(v.camera, cand)
+            if v.mask is None:
+                continue
+            h, w = v.mask.shape
+            xi = np.clip(px.astype(int), 0, w - 1)
+            yi = np.clip(py.astype(int), 0, h - 1)
+            m = ok & (v.mask[yi, xi] > 0.5)
+            seen += ok
+            inside += m
+            color[m] = v.image[yi[m], xi[m]]
+        good = (seen > 0) & (inside >= min_fraction * seen)
+        keep_p.append(cand[good])
+        keep_c.append(color[good])
+        total += int(good.sum())
+        if total >= n:
+            break
+    pts = np.concatenate(keep_p)[:n]
+    cols = np.concatenate(keep_c)[:n]
+    if len(pts) < 4:
+        raise ValueError("visual hull initialisation found no points inside the masks; check the "
+                         "masks and cameras, or initialise from random points")
+    return pts.astype(np.float32), cols
+
+
+def project(camera, pts: np.ndarray):
+    """Pinhole projection into a :class:`Camera` (Mitsuba convention): (x_px, y_px, in_front & inside)."""
+    m = np.linalg.inv(np.asarray(camera.to_world, float))            # world -> camera
+    pc = pts @ m[:3, :3].T + m[:3, 3]                                  # [N, 3], +Z forward, +X left
+    w, h = camera.width, camera.height
+    f = 0.5 * w / np.tan(np.radians(camera.fov_x_deg) / 2)
+    z = np.maximum(pc[:, 2], 1e-9)
+    cx = w * (0.5 - getattr(camera, "principal_point_offset_x", 0.0))   # Mitsuba: cx = (0.5 − off_x)·W
+    cy = h * (0.5 - getattr(camera, "principal_point_offset_y", 0.0))
+    x = cx - f * pc[:, 0] / z                                          # +X is left in Mitsuba
+    y = cy - f * pc[:, 1] / z                                          # +Y is up
+    ok = (pc[:, 2] > 1e-6) & (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    return x, y, ok
+
+
+def random_sphere_points(n: int, center, radius: float, rng: np.random.Generator) -> np.ndarray:
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return (np.asarray(center) + d * radius * rng.uniform(0, 1, (n, 1)) ** (1 / 3)).astype(np.float32)
