@@ -88,6 +88,7 @@ class SurfelGBufferBase:
         self.epsilon = float(props.get("epsilon", -1.0))
         self.targets = parse_targets(str(props.get("targets", "all")))
         self.jitter = bool(props.get("jitter", False))
+        self._cache_key, self._primal_cache = None, None
         self.background = float(props.get("background", 0.0))
         if not (self.background == self.background) or self.background < 0:
             raise ValueError(f"surfel_gbuffer: 'background' must be ≥ 0, got {self.background}")
@@ -125,7 +126,9 @@ class SurfelGBufferBase:
             hits, out, acc, T = compositing.trace_composite(
                 scene, shapes, ray, self.max_hits, eps, self.targets, self.background, active)
             L = out.get("color", mi.Color3f(0.0))
-            return mi.Spectrum(L), acc["weight"] > 0, self._flatten(out), (hits, acc, T)
+            state = (hits, acc, T)
+            self._primal_cache = (self._cache_key, state) if self._cache_key is not None else None
+            return mi.Spectrum(L), acc["weight"] > 0, self._flatten(out), state
         hits, acc, T = state_in
         if mode == dr.ADMode.Backward:
             grads = self._unflatten(δL, δaovs)
@@ -174,6 +177,31 @@ class SurfelGBufferBase:
         film.put_block(block)
         return film.develop()
 
+    # The primal pass of ``mi.render`` and the derivative pass would trace the same
+    # rays twice. With deterministic rays (spp = 1, no jitter) the hit buffer of the
+    # last primal render is reused when sensor and surfel versions are unchanged.
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        s = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        self._cache_key = self._state_key(scene, s, spp)
+        try:
+            return type(self).__bases__[0].render(self, scene, s, seed, spp, develop, evaluate)
+        finally:
+            self._cache_key = None
+
+    def _state_key(self, scene, sensor, spp):
+        n = spp if spp > 0 else sensor.sampler().sample_count()
+        if self.jitter or n != 1:
+            return None
+        shapes = common.surfel_shapes(scene, "surfel_gbuffer")
+        return (id(scene), id(sensor), tuple(sensor.film().crop_size()), tuple(sensor.film().crop_offset()),
+                tuple((id(s), s.version) for s in shapes))
+
+    def _cached_state(self, scene, sensor, spp):
+        c = getattr(self, "_primal_cache", None)
+        if c is None or c[0] != self._state_key(scene, sensor, spp):
+            return None
+        return c[1]
+
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         """Forward-mode derivative image (tangents of every channel)."""
         if isinstance(sensor, int):
@@ -182,8 +210,10 @@ class SurfelGBufferBase:
         with dr.suspend_grad():
             sampler, spp = self.prepare(sensor, seed, spp, self.aov_names())
             ray, weight, pos = self.sample_rays(scene, sensor, sampler)
-            _, _, _, state = self.sample(dr.ADMode.Primal, scene, sampler.clone(), ray,
-                                         active=mi.Bool(True))
+            state = self._cached_state(scene, sensor, spp)
+            if state is None:
+                _, _, _, state = self.sample(dr.ADMode.Primal, scene, sampler.clone(), ray,
+                                             active=mi.Bool(True))
             δL, valid, δaovs, _ = self.sample(dr.ADMode.Forward, scene, sampler, ray,
                                               state_in=state, active=mi.Bool(True))
             return self._splat(film, pos, δL, valid, δaovs, weight)
@@ -207,8 +237,10 @@ class SurfelGBufferBase:
                 dr.traverse(dr.ADMode.Backward)
                 δL, δaovs = dr.grad(L), [dr.grad(a) for a in aovs]
             film.clear()
-            _, _, _, state = self.sample(dr.ADMode.Primal, scene, sampler.clone(), ray,
-                                         active=mi.Bool(True))
+            state = self._cached_state(scene, sensor, spp)
+            if state is None:
+                _, _, _, state = self.sample(dr.ADMode.Primal, scene, sampler.clone(), ray,
+                                             active=mi.Bool(True))
             self.sample(dr.ADMode.Backward, scene, sampler, ray, δL=δL, δaovs=δaovs,
                         state_in=state, active=mi.Bool(True))
             dr.eval()

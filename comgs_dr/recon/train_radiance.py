@@ -131,6 +131,7 @@ class Trainer:
                                    targets=targets, background=bg)
         self.integ = self.scene.integrator()
         self.mp = mi.traverse(self.scene)
+        self.mp.keep(r"surfels\..*")        # update() walks every kept key: leave the sensors out
         self.shape = self.scene.shapes()[0]
         self.opt = mi.ad.Adam(lr=1.0)
         self._register(params)

@@ -177,6 +177,7 @@ class SurfelShapeBase:
             finally:
                 self._building = False
         self._n = n
+        self.version = getattr(self, "version", 0) + 1   # bumped on every rebuild
 
     def to_string(self):
         return f"SurfelShape[id={self.id()}, surfels={self.params.count}, sh_degree={self.params.sh_degree}]"
