@@ -193,8 +193,11 @@ class SurfelGBufferBase:
         if self.jitter or n != 1:
             return None
         shapes = common.surfel_shapes(scene, "surfel_gbuffer")
-        return (id(scene), id(sensor), tuple(sensor.film().crop_size()), tuple(sensor.film().crop_offset()),
-                tuple((id(s), s.version) for s in shapes))
+        m = sensor.world_transform().matrix
+        pose = tuple(float(m[i][j][0]) if dr.is_array_v(m[i][j]) else float(m[i][j])
+                     for i in range(4) for j in range(4))
+        return (id(scene), id(sensor), pose, tuple(sensor.film().crop_size()),
+                tuple(sensor.film().crop_offset()), tuple((id(s), s.version) for s in shapes))
 
     def _cached_state(self, scene, sensor, spp):
         c = getattr(self, "_primal_cache", None)

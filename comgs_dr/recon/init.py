@@ -39,17 +39,20 @@ def surfels_from_points(points: np.ndarray, colors: np.ndarray | None, rng: np.r
 
 def visual_hull_points(views, n: int, center: np.ndarray, radius: float, rng: np.random.Generator,
                        min_fraction: float = 0.95, max_tries: int = 40) -> tuple[np.ndarray, np.ndarray]:
-    """Space carving: uniform points in the bounding sphere kept where they project inside
-    the masks of ≥ ``min_fraction`` of the views that see them; colour from one such view.
+    """Space carving: uniform points in the bounding sphere kept where at least half of the
+    views see them and they project inside the masks of ≥ ``min_fraction`` of those views;
+    colour from one such view.
 
     Returns (points [M, 3], colours [M, 3]); M ≤ n.
     """
     keep_p, keep_c = [], []
     total = 0
+    box = None
     for _ in range(max_tries):
-        cand = rng.normal(size=(4 * n, 3))
-        cand = cand / np.linalg.norm(cand, axis=1, keepdims=True) * radius * rng.uniform(0, 1, (4 * n, 1)) ** (1 / 3)
-        cand = cand + center
+        if box is None:                           # first pass: the whole bounding sphere
+            cand = random_sphere_points(4 * n, center, radius, rng)
+        else:                                     # then the (10 % padded) box of what survived
+            cand = rng.uniform(box[0], box[1], (4 * n, 3)).astype(np.float32)
         inside = np.zeros(len(cand), np.int32)
         seen = np.zeros(len(cand), np.int32)
         color = np.full((len(cand), 3), 0.5, np.float32)
@@ -64,12 +67,18 @@ def visual_hull_points(views, n: int, center: np.ndarray, radius: float, rng: np
             seen += ok
             inside += m
             color[m] = v.image[yi[m], xi[m]]
-        good = (seen > 0) & (inside >= min_fraction * seen)
+        # Seen by at least half of the views: a point just in front of one camera lands
+        # inside that camera's mask but is a floater, not part of the object.
+        good = (seen >= max(1, 0.5 * len(views))) & (inside >= min_fraction * seen)
         keep_p.append(cand[good])
         keep_c.append(color[good])
         total += int(good.sum())
         if total >= n:
             break
+        if total >= 32:
+            allp = np.concatenate(keep_p)
+            lo, hi = allp.min(0), allp.max(0)
+            box = (lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo))
     pts = np.concatenate(keep_p)[:n]
     cols = np.concatenate(keep_c)[:n]
     if len(pts) < 4:

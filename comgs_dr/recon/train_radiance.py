@@ -335,6 +335,7 @@ def train_radiance(data, run_dir, cfg: RadianceConfig, progress: bool = True) ->
             bar.update(1)
         if it % cfg.checkpoint_every == 0:
             tr.checkpoint()
+            ck.atomic_write_text(run_dir / "train_log.json", json.dumps({"summary": None, "log": tr.log}))
         if cfg.time_limit_s is not None and tr.elapsed > cfg.time_limit_s:
             stopped_early = True
             break
