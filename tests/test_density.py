@@ -24,7 +24,7 @@ def _toy():
 
 def test_clone_split_prune_counts_and_alignment():
     p = _toy()
-    ctl = DensityController(DensityConfig(grad_threshold=1e-3, percent_dense=0.01), p.count, extent=1.0)
+    ctl = DensityController(DensityConfig(grad_threshold=1e-3, percent_dense=0.01, max_fraction=1.0), p.count, extent=1.0)
     grads = np.zeros((6, 3))
     grads[0] = [1, 0, 0]                  # hot + small -> clone (lateral to the view)
     grads[1] = [0, 0, 1]                  # hot + large -> split
@@ -87,3 +87,18 @@ def test_everything_pruned_is_an_error():
         ctl.densify_and_prune(SurfelParams.from_numpy(**d))
     with pytest.raises(ValueError, match="extent"):
         DensityController(DensityConfig(), 6, extent=0.0)
+
+
+def test_growth_is_capped_by_fraction():
+    rng = np.random.default_rng(0)
+    n = 200
+    p = SurfelParams.from_numpy(rng.normal(size=(n, 3)), np.tile([1, 0, 0, 0], (n, 1)),
+                                np.log(np.full((n, 2), 0.001)), np.full(n, 2.0), np.zeros((n, 1, 3)))
+    ctl = DensityController(DensityConfig(grad_threshold=1e-6, max_fraction=0.05), n, extent=1.0)
+    ctl.accumulate(rng.normal(size=(n, 3)), field_to_numpy("means", p.means, n), np.array([0.0, 0, -10]), 0.5)
+    g = ctl.grad_accum.copy()
+    out, stats = ctl.densify_and_prune(p)
+    assert stats["cloned"] == 10 and stats["total"] == 210
+    # the clones are the surfels with the largest gradients
+    top = np.sort(np.argsort(-g)[:10])
+    np.testing.assert_allclose(np.sort(out.to_numpy()["means"][200:, 0]), np.sort(p.to_numpy()["means"][top, 0]))

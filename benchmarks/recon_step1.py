@@ -1,0 +1,115 @@
+"""Reconstruction step 1 benchmark: time per iteration by phase, and PSNR against wall time.
+
+Phases: render (trace + forward compositing, fused in one symbolic loop by design),
+loss (L1 + SSIM + d2n + mask), backward (image adjoint + adjoint compositing over the
+cached hit buffer), adam, update (proxy quads + BVH rebuild), density (one
+densify-and-prune, amortised over its interval). Two image sizes x two surfel counts.
+
+    python benchmarks/recon_step1.py [--data DIR] [--quick]
+    python benchmarks/recon_step1.py --run RUN_DIR     # PSNR-vs-time table of a finished run
+
+Without --data, a small procedural object dataset is generated (no download).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def psnr_table(run: Path) -> None:
+    log = json.loads((run / "train_log.json").read_text())
+    print(f"# {run}: test PSNR against training wall-clock time")
+    print(f"{'iteration':>9} {'time s':>8} {'surfels':>8} {'test PSNR':>9}")
+    for r in log["log"]:
+        if "psnr_test" in r:
+            print(f"{r['iteration']:>9} {r['time_s']:>8.1f} {r['surfels']:>8} {r['psnr_test']:>9.2f}")
+
+
+def make_data(res: int, root: Path) -> Path:
+    from comgs_dr.demo import procedural_object, procedural_sky
+    from comgs_dr.eval.synthetic import ObjectDatasetConfig, make_object_dataset
+    out = root / f"ds{res}"
+    if not (out / "transforms_train.json").exists():
+        root.mkdir(parents=True, exist_ok=True)
+        make_object_dataset(ObjectDatasetConfig(
+            mesh=procedural_object(root / "obj.ply"), envmap=procedural_sky(root / "sky.exr"), out_dir=out,
+            n_train=20, n_test=4, resolution=res, spp=16, spp_aov=2, relight_envmaps=(), up_axis="z",
+            texture=None), progress=False)
+    return out
+
+
+def bench(data_dir: Path, n_surfels: int, iters: int) -> dict:
+    import drjit as dr
+    import mitsuba as mi
+
+    from comgs_dr.recon.data import load_dataset
+    from comgs_dr.recon.train_radiance import PARAM_KEYS, RadianceConfig, Trainer
+    data = load_dataset(data_dir)
+    cfg = RadianceConfig(init="random", init_points=n_surfels, densify=dict(start=10 ** 9),
+                         sh_increase_every=0, sh_degree=0)
+    with tempfile.TemporaryDirectory() as tmp:
+        tr = Trainer(data, tmp, cfg, progress=False)
+        T = {k: [] for k in ("render", "loss", "backward", "adam", "update", "density")}
+
+        def tick(key, t0):
+            dr.sync_thread()
+            T[key].append(time.perf_counter() - t0)
+        for it in range(iters + 2):
+            i = it % len(tr.views)
+            t = time.perf_counter(); img = mi.render(tr.scene, tr.mp, sensor=i, seed=it); dr.eval(img); tick("render", t)
+            t = time.perf_counter(); total, _, _ = tr.loss(i, img); dr.eval(total); tick("loss", t)
+            t = time.perf_counter(); dr.backward(total); dr.eval(dr.grad(tr.opt["surfels.means"])); tick("backward", t)
+            t = time.perf_counter(); tr._guard_gradients(); tr.opt.step(); tr._clamp(); dr.eval(); tick("adam", t)
+            t = time.perf_counter(); tr.mp.update(tr.opt); tick("update", t)
+        t = time.perf_counter()
+        tr.density.accumulate(np.asarray(dr.grad(tr.opt["surfels.means"])).T + 1e-3,
+                              np.asarray(tr.opt["surfels.means"]).T, np.zeros(3), 0.36)
+        new, _ = tr.density.densify_and_prune(tr.params(), tr.opt, dict(PARAM_KEYS), np.random.default_rng(0))
+        tick("density", t)
+        med = {k: float(np.median(v[2:] if len(v) > 2 else v)) for k, v in T.items()}
+        med["density"] /= tr.density.cfg.interval
+        med["n"] = tr.params().count
+        return med
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, help="NeRF-synthetic folder (default: generated)")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[64, 128])
+    ap.add_argument("--surfels", type=int, nargs="+", default=[10_000, 40_000])
+    ap.add_argument("--iters", type=int, default=10)
+    ap.add_argument("--quick", action="store_true", help="64 px, 10k surfels, 5 iterations")
+    ap.add_argument("--run", type=Path, help="print the PSNR-vs-time table of a run and exit")
+    a = ap.parse_args()
+    if a.run:
+        psnr_table(a.run)
+        return
+    import comgs_dr
+    comgs_dr.set_variant("llvm_ad_rgb")
+    import drjit
+    import mitsuba
+    if a.quick:
+        a.sizes, a.surfels, a.iters = [64], [10_000], 5
+    root = Path(tempfile.gettempdir()) / "comgs_bench_recon"
+    print(f"# machine: {platform.machine()}, {os.cpu_count()} cores | mitsuba {mitsuba.__version__}, "
+          f"drjit {drjit.__version__}, llvm_ad_rgb | median ms per iteration over {a.iters}")
+    cols = ("render", "loss", "backward", "adam", "update", "density")
+    print(f"{'px':>4} {'surfels':>8} " + " ".join(f"{c:>8}" for c in cols) + f" {'total':>8} {'it/s':>6}")
+    for res in a.sizes:
+        data = a.data or make_data(res, root)
+        for n in a.surfels:
+            r = bench(data, n, a.iters)
+            tot = sum(r[c] for c in cols)
+            print(f"{res:>4} {r['n']:>8} " + " ".join(f"{1000 * r[c]:>8.1f}" for c in cols)
+                  + f" {1000 * tot:>8.1f} {1 / tot:>6.2f}")
+
+
+if __name__ == "__main__":
+    main()
