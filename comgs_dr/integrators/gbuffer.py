@@ -205,30 +205,36 @@ class SurfelGBufferBase:
             return None
         return c[1]
 
-    def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
-        """Forward-mode derivative image (tangents of every channel)."""
+    def _derivative_setup(self, scene, sensor, seed, spp):
+        """(sensor, sampler, spp, ray, weight, pos) of a derivative render (no AD)."""
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
-        film = sensor.film()
+        sampler, spp = self.prepare(sensor, seed, spp, self.aov_names())
+        ray, weight, pos = self.sample_rays(scene, sensor, sampler)
+        return sensor, sampler, spp, ray, weight, pos
+
+    def _primal_state(self, scene, sensor, sampler, spp, ray):
+        """Hit buffer + accumulated buffers: cached from the primal render, else traced."""
+        state = self._cached_state(scene, sensor, spp)
+        if state is None:
+            _, _, _, state = self.sample(dr.ADMode.Primal, scene, sampler.clone(), ray,
+                                         active=mi.Bool(True))
+        return state
+
+    def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
+        """Forward-mode derivative image (tangents of every channel)."""
         with dr.suspend_grad():
-            sampler, spp = self.prepare(sensor, seed, spp, self.aov_names())
-            ray, weight, pos = self.sample_rays(scene, sensor, sampler)
-            state = self._cached_state(scene, sensor, spp)
-            if state is None:
-                _, _, _, state = self.sample(dr.ADMode.Primal, scene, sampler.clone(), ray,
-                                             active=mi.Bool(True))
+            sensor, sampler, spp, ray, weight, pos = self._derivative_setup(scene, sensor, seed, spp)
+            state = self._primal_state(scene, sensor, sampler, spp, ray)
             δL, valid, δaovs, _ = self.sample(dr.ADMode.Forward, scene, sampler, ray,
                                               state_in=state, active=mi.Bool(True))
-            return self._splat(film, pos, δL, valid, δaovs, weight)
+            return self._splat(sensor.film(), pos, δL, valid, δaovs, weight)
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         """Reverse mode: image adjoint → per-sample adjoints → surfel parameter gradients."""
-        if isinstance(sensor, int):
-            sensor = scene.sensors()[sensor]
-        film = sensor.film()
         with dr.suspend_grad():
-            sampler, spp = self.prepare(sensor, seed, spp, self.aov_names())
-            ray, weight, pos = self.sample_rays(scene, sensor, sampler)
+            sensor, sampler, spp, ray, weight, pos = self._derivative_setup(scene, sensor, seed, spp)
+            film = sensor.film()
             n = dr.width(pos)
             with dr.resume_grad():   # adjoint of splatting + development
                 L = dr.full(mi.Color3f, 1.0, n)
@@ -240,10 +246,7 @@ class SurfelGBufferBase:
                 dr.traverse(dr.ADMode.Backward)
                 δL, δaovs = dr.grad(L), [dr.grad(a) for a in aovs]
             film.clear()
-            state = self._cached_state(scene, sensor, spp)
-            if state is None:
-                _, _, _, state = self.sample(dr.ADMode.Primal, scene, sampler.clone(), ray,
-                                             active=mi.Bool(True))
+            state = self._primal_state(scene, sensor, sampler, spp, ray)
             self.sample(dr.ADMode.Backward, scene, sampler, ray, δL=δL, δaovs=δaovs,
                         state_in=state, active=mi.Bool(True))
             dr.eval()

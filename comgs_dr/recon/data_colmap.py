@@ -16,8 +16,8 @@ import numpy as np
 
 from .data_images import (IMAGE_EXTENSIONS, check_scale, load_view, missing_error,
                           scaled_intrinsics)
-from .data_types import (MITSUBA_FROM_OPENCV, DatasetError, SceneData, holdout, rigid_pose,
-                         subsample, up_alignment)
+from .data_types import (MITSUBA_FROM_OPENCV, DatasetError, SceneData, aligned_split,
+                         rigid_pose, subsample)
 
 #: Pinhole-family models; the ones with distortion parameters are accepted only when the
 #: distortion moves no border pixel by more than ``MAX_DISTORTION_PX``.
@@ -69,17 +69,10 @@ def load_colmap(root, images: str = "images", masks: str | None = None,
                             missing, len(regs))
     mask_paths = _mask_paths(root, masks, [f["name"] for f in frames])
 
-    rot = up_alignment([f["to_world"] for f in frames], up, str(model_dir))
+    rot, tr, te = aligned_split(frames, up, str(model_dir), test_every)
     points, colors = _points(rec)
     if points is not None:
         points = (points @ rot[:3, :3].T).astype(np.float32)
-    for f in frames:
-        f["to_world"] = rot @ f["to_world"]
-
-    tr, te = holdout(len(frames), test_every)
-    if not tr:
-        raise DatasetError(f"{model_dir}: no training images left after holding out every "
-                           f"{test_every}th image ({len(frames)} images)")
     bg = (1.0, 1.0, 1.0) if white_background else (0.0, 0.0, 0.0)
     load = lambda idx: [load_view(f["name"], f["path"], f["to_world"], f["intrinsics"], k, bg,
                                   mask_path=mask_paths.get(f["name"]))

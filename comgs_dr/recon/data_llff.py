@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from .data_images import check_scale, list_images, load_view, scaled_intrinsics
-from .data_types import (MITSUBA_FROM_LLFF, DatasetError, SceneData, holdout, rigid_pose,
-                         subsample, up_alignment)
+from .data_types import (MITSUBA_FROM_LLFF, DatasetError, SceneData, aligned_split,
+                         rigid_pose, subsample)
 
 
 def load_llff(root, resolution_scale: int = 1, test_every: int = 8, images: str | None = None,
@@ -62,14 +62,7 @@ def load_llff(root, resolution_scale: int = 1, test_every: int = 8, images: str 
         frames.append({"name": f.stem, "path": f,
                        "to_world": rigid_pose(poses[i, :, :4], where) @ MITSUBA_FROM_LLFF,
                        "intrinsics": scaled_intrinsics(focal, focal, w / 2, h / 2, w, h, where)})
-    rot = up_alignment([f["to_world"] for f in frames], up, str(pb_path))
-    for f in frames:
-        f["to_world"] = rot @ f["to_world"]
-
-    tr, te = holdout(len(frames), test_every)
-    if not tr:
-        raise DatasetError(f"{folder}: no training images left after holding out every "
-                           f"{test_every}th image ({len(frames)} images)")
+    rot, tr, te = aligned_split(frames, up, str(pb_path), test_every)
     bg = (1.0, 1.0, 1.0) if white_background else (0.0, 0.0, 0.0)
     load = lambda idx: [load_view(f["name"], f["path"], f["to_world"], f["intrinsics"], k, bg)
                         for f in subsample([frames[i] for i in idx], max_views)]

@@ -255,6 +255,21 @@ def holdout(n: int, test_every: int | None) -> tuple[list[int], list[int]]:
     return [i for i in range(n) if i % int(test_every) != 0], test
 
 
+def aligned_split(frames: list[dict], up: str, where: str, test_every: int | None):
+    """Rotate frame poses by the ``up`` alignment and hold out every ``test_every``-th frame.
+
+    Returns (rotation [4, 4], train indices, test indices); refuses an empty train split.
+    """
+    rot = up_alignment([f["to_world"] for f in frames], up, where)
+    for f in frames:
+        f["to_world"] = rot @ f["to_world"]
+    tr, te = holdout(len(frames), test_every)
+    if not tr:
+        raise DatasetError(f"{where}: no training images left after holding out every "
+                           f"{test_every}th image ({len(frames)} images)")
+    return rot, tr, te
+
+
 def subsample(items: list, max_views: int | None) -> list:
     """At most ``max_views`` items, evenly spaced (all when None)."""
     if max_views is None or len(items) <= int(max_views):

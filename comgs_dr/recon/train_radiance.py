@@ -146,15 +146,15 @@ class Trainer:
         self._rays = {}
 
     # ------------------------------------------------------------- params
+    def _install(self, params: SurfelParams):
+        """Put every field of ``params`` (any count) into the scene; rebuilds proxies + BVH."""
+        for f in field_names():
+            self.mp[f"surfels.{f}"] = getattr(params, f)
+        self.mp.update()
+
     def _register(self, params: SurfelParams):
         import drjit as dr
-        import mitsuba as mi
-        for f, key in PARAM_KEYS.items():
-            self.mp[key] = getattr(params, f)
-        self.mp["surfels.albedo"] = params.albedo
-        self.mp["surfels.roughness"] = params.roughness
-        self.mp["surfels.metallic"] = params.metallic
-        self.mp.update()
+        self._install(params)
         for f, key in PARAM_KEYS.items():
             self.opt[key] = self.mp[key]
         self._set_learning_rates()
@@ -271,12 +271,7 @@ class Trainer:
     def _resize(self, params: SurfelParams, remap):
         """Install a new surfel set (density control or SH growth) into scene + optimiser."""
         import drjit as dr
-        for f, key in PARAM_KEYS.items():
-            self.mp[key] = getattr(params, f)
-        self.mp["surfels.albedo"] = params.albedo
-        self.mp["surfels.roughness"] = params.roughness
-        self.mp["surfels.metallic"] = params.metallic
-        self.mp.update()
+        self._install(params)
         if remap is None:                       # SH growth: moments of sh restart at zero
             self.opt["surfels.sh"] = self.mp["surfels.sh"]
             self.opt.reset("surfels.sh")
