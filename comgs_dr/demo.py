@@ -44,6 +44,26 @@ def procedural_object(path: Path) -> Path:
     return path
 
 
+def procedural_scene(path: Path) -> Path:
+    """A small Z-up scene as PLY: a ground slab with a torus, a ball, a box and a pillar on it."""
+    import trimesh
+    T = trimesh.transformations
+    parts = [
+        trimesh.creation.box((3.0, 3.0, 0.1), transform=T.translation_matrix([0, 0, -0.05])),
+        trimesh.creation.torus(major_radius=0.35, minor_radius=0.12, major_sections=64, minor_sections=24),
+        trimesh.creation.icosphere(subdivisions=3, radius=0.3),
+        trimesh.creation.box((0.5, 0.4, 0.6)),
+        trimesh.creation.cylinder(radius=0.12, height=1.0, sections=32),
+    ]
+    parts[1].apply_translation([-0.6, 0.5, 0.12])
+    parts[2].apply_translation([0.6, 0.4, 0.3])
+    parts[3].apply_transform(T.concatenate_matrices(T.translation_matrix([0.2, -0.7, 0.3]),
+                                                    T.rotation_matrix(0.6, [0, 0, 1])))
+    parts[4].apply_translation([-0.8, -0.6, 0.5])
+    trimesh.util.concatenate(parts).export(path)
+    return path
+
+
 def procedural_sky(path: Path, width: int = 256) -> Path:
     """Equirect HDR sky (Z-up, the dataset's orientation): gradient, ground, small bright sun."""
     import mitsuba as mi
