@@ -38,13 +38,20 @@ def surfels_from_points(points: np.ndarray, colors: np.ndarray | None, rng: np.r
 
 
 def visual_hull_points(views, n: int, center: np.ndarray, radius: float, rng: np.random.Generator,
-                       min_fraction: float = 0.95, max_tries: int = 40) -> tuple[np.ndarray, np.ndarray]:
+                       min_fraction: float = 0.95, max_tries: int = 60,
+                       shell_px: float | None = 2.0) -> tuple[np.ndarray, np.ndarray]:
     """Space carving: uniform points in the bounding sphere kept where at least half of the
     views see them and they project inside the masks of ≥ ``min_fraction`` of those views;
-    colour from one such view.
+    colour from one such view. With ``shell_px``, only points within that many pixels of
+    a mask boundary in some view are kept: the hull's surface shell, where the object's
+    surface is (interior points would be hidden surfels that only slow training).
 
     Returns (points [M, 3], colours [M, 3]); M ≤ n.
     """
+    inner = None
+    if shell_px is not None:
+        from scipy.ndimage import distance_transform_edt
+        inner = [None if v.mask is None else distance_transform_edt(v.mask > 0.5) for v in views]
     keep_p, keep_c = [], []
     total = 0
     box = None
@@ -56,7 +63,8 @@ def visual_hull_points(views, n: int, center: np.ndarray, radius: float, rng: np
         inside = np.zeros(len(cand), np.int32)
         seen = np.zeros(len(cand), np.int32)
         color = np.full((len(cand), 3), 0.5, np.float32)
-        for v in views:
+        depth_px = np.full(len(cand), np.inf)
+        for j, v in enumerate(views):
             px, py, ok = project(v.camera, cand)
             if v.mask is None:
                 continue
@@ -67,9 +75,13 @@ def visual_hull_points(views, n: int, center: np.ndarray, radius: float, rng: np
             seen += ok
             inside += m
             color[m] = v.image[yi[m], xi[m]]
+            if inner is not None and inner[j] is not None:
+                depth_px = np.where(ok, np.minimum(depth_px, inner[j][yi, xi]), depth_px)
         # Seen by at least half of the views: a point just in front of one camera lands
         # inside that camera's mask but is a floater, not part of the object.
         good = (seen >= max(1, 0.5 * len(views))) & (inside >= min_fraction * seen)
+        if inner is not None:
+            good &= depth_px <= shell_px
         keep_p.append(cand[good])
         keep_c.append(color[good])
         total += int(good.sum())
