@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..eval.metrics import psnr
 from ..surfels.params import SurfelParams, field_names
 from . import checkpoint as ck
 
@@ -308,11 +309,6 @@ class Trainer:
             "iteration": self.iteration, "log": self.log, "elapsed": self.elapsed,
             "init": self.init_desc, "rng_seed": int(self.rng.integers(1 << 31)),
             "config": dataclasses.asdict(self.cfg)})
-
-
-def psnr(img: np.ndarray, ref: np.ndarray) -> float:
-    mse = float(np.mean((np.clip(img[..., :3], 0, 1) - ref[..., :3]) ** 2))
-    return 10 * math.log10(1.0 / max(mse, 1e-12))
 
 
 def train_radiance(data, run_dir, cfg: RadianceConfig, progress: bool = True) -> dict:
