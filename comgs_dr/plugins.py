@@ -7,7 +7,7 @@ Mitsuba pipeline only needs ``import comgs_dr`` before loading our XML.
 import mitsuba as mi
 
 SHAPES = ("surfels",)
-INTEGRATORS = ("surfel_gbuffer",)
+INTEGRATORS = ("surfel_gbuffer", "sop_pbr")
 _registered: set[str] = set()
 _callback_installed = False
 
@@ -40,8 +40,10 @@ def register_all() -> None:
     # Imported lazily: the modules build variant-specific types when used.
     from .surfels.shape import register as register_shape
     from .integrators.gbuffer import register as register_gbuffer
+    from .integrators.pbr import register as register_pbr
     register_shape()
     register_gbuffer()
+    register_pbr()
     _registered.add(name)
 
 
