@@ -180,8 +180,12 @@ class MaterialTrainer:
         return probes
 
     # ------------------------------------------------------------------ step
-    def _render(self, i, params=None, seed=0):
-        return self.pbr.render(i, params=params, seed=seed, background=self.bg, display=True,
+    def materials(self) -> dict:
+        return {"albedo": self.opt["surfels.albedo"], "roughness": self.opt["surfels.roughness"],
+                "metallic": self.opt["surfels.metallic"]}
+
+    def _render(self, i, seed=0):
+        return self.pbr.render(i, self.materials(), seed=seed, background=self.bg, display=True,
                                env_theta=self.opt["env"])
 
     def step(self) -> dict:
@@ -193,7 +197,7 @@ class MaterialTrainer:
         if self.probes is not None:
             self.vis.atlas = self.opt["sops"]
         t0 = time.perf_counter()
-        pts, geo = self.pbr.shading_points(i, self.mp)
+        pts, geo = self.pbr.shading_points(i, self.materials())
         dr.eval(pts.albedo, pts.roughness, pts.metallic)
         t1 = time.perf_counter()
         from ..lighting.shade import shade
@@ -215,7 +219,6 @@ class MaterialTrainer:
         t3 = time.perf_counter()
         self.opt.step()
         self._clamp()
-        self.mp.update(self.opt)
         dr.eval()
         t4 = time.perf_counter()
         self.iteration += 1
@@ -310,6 +313,7 @@ class MaterialTrainer:
 
     def save_outputs(self) -> dict:
         from ..surfels import save_ply
+        self.mp.update(self.opt)
         shape = self.scene.shapes()[0]
         save_ply(shape.params, str(self.out_dir / "point_cloud.ply"))
         self.env.save(self.out_dir / "envmap.exr")
