@@ -56,3 +56,17 @@ def test_visual_hull_of_a_sphere(rng):
 def test_bad_points_are_refused(rng):
     with pytest.raises(ValueError, match="finite points"):
         I.surfels_from_points(np.array([[0, 0, np.nan]] * 5), None, rng)
+
+
+def test_pca_normals_of_a_sphere_shell_point_outwards(rng):
+    from comgs_dr.recon.init import pca_normal_quaternions
+    from comgs_dr.surfels.io import quat_to_matrix
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    pts = 0.8 * d + rng.normal(0, 0.005, d.shape) + [0.3, -0.2, 0.1]   # a thin noisy shell
+    q = pca_normal_quaternions(pts)
+    n = quat_to_matrix(q)[:, :, 2]
+    radial = (pts - [0.3, -0.2, 0.1]) / np.linalg.norm(pts - [0.3, -0.2, 0.1], axis=1)[:, None]
+    cos = (n * radial).sum(1)
+    assert np.median(cos) > 0.99 and (cos > 0.9).mean() > 0.97
+    assert np.allclose(np.linalg.norm(q, axis=1), 1, atol=1e-5)

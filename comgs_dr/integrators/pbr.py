@@ -39,8 +39,6 @@ class DeferredPbr:
                  max_hits: int = 32, min_weight: float = 0.05):
         self.scene, self.env, self.visibility, self.cfg = scene, env, visibility, cfg
         self.min_weight = float(min_weight)
-        self._geo_integ = mi.load_dict({"type": "surfel_gbuffer", "max_hits": max_hits,
-                                        "targets": "weight,depth_unbiased,normal"})
         self._mat_integ = mi.load_dict({"type": "surfel_gbuffer", "max_hits": max_hits,
                                         "targets": "albedo,roughness,metallic"})
         self._geo = {}
@@ -52,33 +50,6 @@ class DeferredPbr:
             return self._geo[sensor]
         from ..recon.losses import camera_rays
         s = self.scene.sensors()[sensor]
-        with dr.suspend_grad():
-            parts = self._geo_integ.split(mi.render(self.scene, sensor=s,
-                                                    integrator=self._geo_integ))
-            dirs, origins = camera_rays(s)
-        W = np.asarray(parts["weight"])[..., 0]                            # [H, W]
-        D = np.asarray(parts["depth_unbiased"])[..., 0]
-        N = np.asarray(parts["normal"])
-        h, w = W.shape
-        nrm = np.linalg.norm(N, axis=-1)
-        cover = (W >= self.min_weight) & np.isfinite(D) & (D > 0) & (nrm > 1e-6)
-        pix = np.flatnonzero(cover.ravel())                                # [P]
-        d = np.asarray(dirs).reshape(-1, 3)[pix]
-        x = np.asarray(origins).reshape(-1, 3)[pix] + d * D.ravel()[pix, None]
-        n = N.reshape(-1, 3)[pix] / nrm.ravel()[pix, None]
-        f32 = lambda a: np.ascontiguousarray(a, np.float32)
-        o = np.asarray(origins).reshape(-1, 3)[pix]
-        geo = {"pix": mi.UInt32(pix.astype(np.uint32)), "pix_np": pix, "shape": (h, w),
-               "W": mi.Float(f32(W.ravel())), "W_np": W,
-               "x": mi.Point3f(*f32(x).T), "n": mi.Vector3f(*f32(n).T),
-               "wo": mi.Vector3f(*f32(-d).T)}
-        geo["ids"], geo["w"] = self._hit_weights(mi.Point3f(*f32(o).T), mi.Vector3f(*f32(d).T))
-        self._geo[sensor] = geo
-        return geo
-
-    def _hit_weights(self, origins, dirs):
-        """Per covered pixel, the K hit surfel ids and their blend weights T_k α_k (flat
-        [P*K]; unused slots have weight 0 and id 0)."""
         from . import common
         from .compositing import trace_composite
         shapes = common.surfel_shapes(self.scene, "DeferredPbr")
@@ -86,25 +57,44 @@ class DeferredPbr:
             raise ValueError(f"DeferredPbr: needs exactly one surfels shape, got {len(shapes)}")
         K = self.max_hits
         with dr.suspend_grad():
-            ray = mi.Ray3f(origins, dirs)
+            dirs, origins = camera_rays(s)
+            h, w = dirs.shape[:2]
+            ray = mi.Ray3f(mi.Point3f(dr.unravel(mi.Point3f, origins.array)),
+                           mi.Vector3f(dr.unravel(mi.Vector3f, dirs.array)))
             eps = common.auto_epsilon(self.scene, shapes)
-            hits, _, _, _ = trace_composite(self.scene, shapes, ray, K, eps, ("weight",))
-            n = dr.width(origins)
-            rid = dr.arange(mi.UInt32, n)
-            T = dr.full(mi.Float, 1.0, n)
-            ids = dr.zeros(mi.UInt32, n * K)
-            wts = dr.zeros(mi.Float, n * K)
-            for k in range(K):
-                pos = rid * K + k
-                act = k < hits.count
-                idx = dr.gather(mi.UInt32, hits.ids, pos, act)
-                smp = common.eval_surfel(shapes, mi.UInt32(0), idx, ray, act)
-                w = T * smp.alpha
-                dr.scatter(ids, dr.select(act, idx, 0), pos)
-                dr.scatter(wts, dr.select(act, w, 0.0), pos)
-                T = T * (1.0 - smp.alpha)
-                dr.eval(T, ids, wts)
-        return ids, wts
+            hits, out, _, _ = trace_composite(self.scene, shapes, ray, K, eps,
+                                              ("weight", "depth_unbiased", "normal"))
+            W, D, N = out["weight"], out["depth_unbiased"], out["normal"]
+            nrm = dr.norm(N)
+            cover = (W >= self.min_weight) & dr.isfinite(D) & (D > 0) & (nrm > 1e-6)
+            pix = dr.compress(cover)                                           # [P]
+            d = dr.gather(mi.Vector3f, ray.d, pix)
+            o = dr.gather(mi.Point3f, ray.o, pix)
+            x = mi.Point3f(o + d * dr.gather(mi.Float, D, pix))
+            n = mi.Vector3f(dr.gather(mi.Vector3f, N, pix) / dr.gather(mi.Float, nrm, pix))
+            # blend weights T_k α_k of every covered pixel's hits (recomputed analytically)
+            P = dr.width(pix)
+            rid = dr.arange(mi.UInt32, P)
+            ids = dr.zeros(mi.UInt32, P * K)
+            wts = dr.zeros(mi.Float, P * K)
+            count = dr.gather(mi.UInt32, hits.count, pix)
+            pray = mi.Ray3f(o, d)
+
+            def body(k, T):     # symbolic loop: compile time independent of K
+                idx = dr.gather(mi.UInt32, hits.ids, pix * K + k)
+                smp = common.eval_surfel(shapes, mi.UInt32(0), idx, pray, True)
+                dr.scatter(ids, idx, rid * K + k)
+                dr.scatter(wts, T * smp.alpha, rid * K + k)
+                return k + 1, T * (1.0 - smp.alpha)
+
+            dr.while_loop((mi.UInt32(0), dr.full(mi.Float, 1.0, P)),
+                          lambda k, T: k < count, body, label="blend weights")
+            dr.eval(ids, wts, x, n, d, W)
+        geo = {"pix": pix, "pix_np": np.asarray(pix, np.int64), "shape": (h, w),
+               "W": W, "W_np": np.asarray(W).reshape(h, w), "x": x, "n": n, "wo": mi.Vector3f(-d),
+               "ids": ids, "w": wts}
+        self._geo[sensor] = geo
+        return geo
 
     def surfel_materials(self) -> dict:
         """The scene's per-surfel materials (albedo Color3f, roughness, metallic)."""
@@ -129,13 +119,16 @@ class DeferredPbr:
         geo = self.geometry(sensor)
         mats = materials if materials is not None else self.surfel_materials()
         K = self.max_hits
-        E = dr.ReduceMode.Expand
+        from ..sops.octahedral import expand_mode
         ids, w = geo["ids"], geo["w"]
         W = dr.block_sum(w, K)                                              # [P]
         inv = dr.rcp(dr.maximum(W, 1e-6))
-        a = dr.block_sum(w * dr.gather(mi.Color3f, mats["albedo"], ids, mode=E), K) * inv
-        r = dr.block_sum(w * dr.gather(mi.Float, mats["roughness"], ids, mode=E), K) * inv
-        m = dr.block_sum(w * dr.gather(mi.Float, mats["metallic"], ids, mode=E), K) * inv
+
+        def blend(cls, src):
+            return dr.block_sum(w * dr.gather(cls, src, ids, mode=expand_mode(src)), K) * inv
+        a = blend(mi.Color3f, mats["albedo"])
+        r = blend(mi.Float, mats["roughness"])
+        m = blend(mi.Float, mats["metallic"])
         pts = ShadingPoints(position=geo["x"], normal=geo["n"], wo=geo["wo"],
                             albedo=dr.clip(a, 0.0, 1.0), roughness=dr.clip(r, 0.0, 1.0),
                             metallic=dr.clip(m, 0.0, 1.0))

@@ -219,7 +219,11 @@ class OctEnvmap:
         Differentiable w.r.t. ``theta`` (defaults to ``self.theta``)."""
         theta = self.theta if theta is None else theta
         taps = octa.bilinear_taps(mi.UInt32(0), octa.dir_to_uv(d), self.res)
-        return octa.lookup(dr.exp(theta), taps, 3)
+        radiance = dr.exp(theta)
+        # Evaluated before the Expand-mode gathers: their backward pass into an unevaluated
+        # source was seen to crash Dr.Jit 1.5 (segfault in the next kernel launch).
+        dr.eval(radiance)
+        return octa.lookup(radiance, taps, 3)
 
     def sampler(self, floor: float = 1e-3) -> "EnvSampler":
         return EnvSampler(self.radiance_np(), floor)

@@ -122,8 +122,8 @@ class TraceVisibility:
     def lookup(self, pid, wi, need_radiance: bool):
         from ..integrators.visibility import trace_visibility
         with dr.suspend_grad():
-            x = dr.gather(mi.Point3f, dr.detach(self.pts.position), pid)
-            n = dr.gather(mi.Vector3f, dr.detach(self.pts.normal), pid)
+            x = dr.gather(mi.Point3f, mi.Point3f(dr.detach(self.pts.position)), pid)
+            n = dr.gather(mi.Vector3f, mi.Vector3f(dr.detach(self.pts.normal)), pid)
             occ, rad = trace_visibility(self.scene, x + n * self.offset, dr.detach(wi),
                                         self.max_hits, radiance=need_radiance,
                                         colour_space=self.colour_space)
@@ -154,14 +154,14 @@ def shade(pts: ShadingPoints, env, visibility, cfg: ShadingConfig, seed: int = 0
         local, pdf = brdf.sample_uniform_hemisphere(uu)
     else:
         local, pdf = brdf.sample_cosine_hemisphere(uu)
-    E = dr.ReduceMode.Expand
     n = dr.gather(mi.Vector3f, dr.detach(pts.normal), pid)
     tx, ty = brdf.frame_from_normal(n)
     wi = dr.normalize(tx * local.x + ty * local.y + n * local.z)
     wo = dr.gather(mi.Vector3f, dr.detach(pts.wo), pid)
-    a = dr.gather(mi.Color3f, pts.albedo, pid, mode=E)
-    r = dr.gather(mi.Float, pts.roughness, pid, mode=E)
-    m = dr.gather(mi.Float, pts.metallic, pid, mode=E)
+    E = octa.expand_mode
+    a = dr.gather(mi.Color3f, pts.albedo, pid, mode=E(pts.albedo))
+    r = dr.gather(mi.Float, pts.roughness, pid, mode=E(pts.roughness))
+    m = dr.gather(mi.Float, pts.metallic, pid, mode=E(pts.metallic))
     f = brdf.eval_brdf(a, r, m, n, wo, wi)
     cos_i = dr.maximum(dr.dot(wi, n), 0.0)
     L_dir = env.eval(wi, env_theta)

@@ -20,9 +20,32 @@ def nn_scale(points: np.ndarray, k: int = 3) -> np.ndarray:
     return np.maximum(s, 1e-7).astype(np.float32)
 
 
+def pca_normal_quaternions(points: np.ndarray, k: int = 16, center=None) -> np.ndarray:
+    """[N, 4] w-first quaternions whose surfel normal is the local PCA normal of ``points``
+    (smallest-eigenvalue axis of the k nearest neighbours), oriented away from ``center``
+    (default: the centroid). For a surface shell such as the visual hull's, this starts
+    every surfel tangent to the surface instead of at a random orientation."""
+    from scipy.spatial import cKDTree
+    from ..surfels.from_mesh import frame_to_quat
+    pts = np.asarray(points, np.float64)
+    k = int(min(k, len(pts)))
+    _, nb = cKDTree(pts).query(pts, k=k)
+    q = pts[nb] - pts[nb].mean(1, keepdims=True)                       # [N, k, 3]
+    _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", q, q))          # ascending eigenvalues
+    n = vecs[:, :, 0]
+    c = pts.mean(0) if center is None else np.asarray(center, np.float64)
+    n *= np.where(((pts - c) * n).sum(1, keepdims=True) < 0, -1.0, 1.0)
+    t = np.cross(n, np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    b = np.cross(n, t)
+    return frame_to_quat(np.stack([t, b, n], -1)).astype(np.float32)
+
+
 def surfels_from_points(points: np.ndarray, colors: np.ndarray | None, rng: np.random.Generator,
-                        sh_degree: int = 0, opacity: float = 0.1) -> SurfelParams:
-    """Random orientations, NN-based sizes, colour from ``colors`` (display values in [0,1]) or grey."""
+                        sh_degree: int = 0, opacity: float = 0.1,
+                        quats: np.ndarray | None = None) -> SurfelParams:
+    """NN-based sizes, colour from ``colors`` (display values in [0,1]) or grey; random
+    orientations unless ``quats`` [N, 4] are given."""
     pts = np.asarray(points, np.float32)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 4 or not np.all(np.isfinite(pts)):
         raise ValueError(f"surfels_from_points: need ≥ 4 finite points [N, 3], got {pts.shape}")
@@ -33,7 +56,8 @@ def surfels_from_points(points: np.ndarray, colors: np.ndarray | None, rng: np.r
     if colors is not None:
         sh[:, 0] = (np.clip(np.asarray(colors, np.float32), 0, 1) - 0.5) / SH_C0
     return SurfelParams.from_numpy(
-        means=pts, quats=random_quaternions(n, rng), log_scales=np.log(np.c_[s, s]),
+        means=pts, quats=random_quaternions(n, rng) if quats is None else quats,
+        log_scales=np.log(np.c_[s, s]),
         opacity_logit=np.full(n, np.log(opacity / (1 - opacity)), np.float32), sh=sh)
 
 

@@ -12,7 +12,7 @@ Metrics (per view, averaged), when the dataset holds the ground truth that
   over the run's background like the training photos);
 * albedo PSNR after per-channel median scale alignment (TensoIR protocol: s_c =
   median(gt_c / pred_c) over covered pixels), computed on sRGB-encoded albedo;
-* normal MAE (degrees) vs ``r_<i>_normal.exr``.
+* normal MAE (degrees) of the shading normals vs ``r_<i>_normal.exr``.
 """
 from __future__ import annotations
 
@@ -132,6 +132,13 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
                 al, s = align_albedo(pa, ga[..., :3], mask)
                 m3 = mask[..., None]
                 rec["albedo_psnr"] = M.psnr(_srgb(al) * m3, _srgb(ga[..., :3]) * m3)
+            if "normal_path" in fr and (base / fr["normal_path"]).exists():
+                gn = np.asarray(mi.Bitmap(str(base / fr["normal_path"])), np.float64)
+                mask = (gn[..., 3] > 0.99) & (W > 0.5) if gn.shape[-1] > 3 else (W > 0.5)
+                pn = np.zeros((W.size, 3))
+                pn[geo["pix_np"]] = np.asarray(geo["n"]).T
+                rec["normal_mae_deg"] = M.normal_mae_deg(pn.reshape(W.shape + (3,)),
+                                                         gn[..., :3], mask.astype(np.float32))
         per_view.append(rec)
     keys = sorted({k for r in per_view for k in r if k != "view"})
     res = {k: float(np.mean([r[k] for r in per_view if k in r])) for k in keys}

@@ -154,6 +154,12 @@ class MaterialTrainer:
             self._restore(resumed)
         self.mp.update(self.opt)
         self.targets = [mi.TensorXf(v.image.astype(np.float32)) for v in self.views]
+        t0 = time.perf_counter()
+        from tqdm.auto import tqdm
+        for j in tqdm(range(len(self.views) + len(self.test)), desc="G-buffers", unit="view",
+                      disable=not progress):
+            self.pbr.geometry(j)        # fixed geometry: traced once per view (cached)
+        self.timings["gbuffers_s"] = time.perf_counter() - t0
         dr.eval()
 
     # ------------------------------------------------------------------ probes
@@ -199,6 +205,7 @@ class MaterialTrainer:
         t0 = time.perf_counter()
         pts, geo = self.pbr.shading_points(i, self.materials())
         dr.eval(pts.albedo, pts.roughness, pts.metallic)
+        dr.sync_thread()
         t1 = time.perf_counter()
         from ..lighting.shade import shade
         col = shade(pts, self.env, self.vis, self.pbr.cfg, self.iteration, self.opt["env"])
@@ -213,13 +220,17 @@ class MaterialTrainer:
             lsops = 4.0 * dr.mean(self._sops_w * dr.abs(self.opt["sops"] - self.sops_target))
             loss = loss + c.lambda_sops * lsops
             stats["sops"] = float(lsops[0])
-        dr.eval(loss)
+        dr.eval(loss, img)
+        dr.sync_thread()
         t2 = time.perf_counter()
         dr.backward(loss)
+        dr.eval([dr.grad(self.opt[k]) for k in self.opt.keys()])
+        dr.sync_thread()
         t3 = time.perf_counter()
         self.opt.step()
         self._clamp()
         dr.eval()
+        dr.sync_thread()
         t4 = time.perf_counter()
         self.iteration += 1
         from ..eval.metrics import psnr

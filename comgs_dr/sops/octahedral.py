@@ -224,6 +224,13 @@ def bilinear_taps(tile, uv, res: int) -> Taps:
 _VEC = {1: "Float", 3: "Color3f", 4: "Vector4f"}
 
 
+def expand_mode(source):
+    """``ReduceMode.Expand`` for sources that need gradients (fast backward scatter-add,
+    DESIGN.md §3), the default otherwise: Expand-mode gathers from *non-differentiable*
+    sources inside a graph that is later differentiated were seen to segfault Dr.Jit 1.5."""
+    return dr.ReduceMode.Expand if dr.grad_enabled(source) else dr.ReduceMode.Auto
+
+
 def lookup(atlas, taps: Taps, channels: int):
     """Bilinear lookup of a ``channels``-wide atlas (1, 3 or 4): ``mi.Float``,
     ``mi.Color3f`` or ``mi.Vector4f``.
@@ -234,9 +241,10 @@ def lookup(atlas, taps: Taps, channels: int):
     if channels not in _VEC:
         raise ValueError(f"atlas lookups support 1, 3 or 4 channels, got {channels}")
     cls = getattr(mi, _VEC[channels])
+    mode = expand_mode(atlas)
     out = None
     for idx, w in zip(taps.index, taps.weight):
-        v = dr.gather(cls, atlas, idx, mode=dr.ReduceMode.Expand)
+        v = dr.gather(cls, atlas, idx, mode=mode)
         out = w * v if out is None else out + w * v
     return out
 
