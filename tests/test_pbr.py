@@ -77,15 +77,25 @@ def _analytic_sphere_occlusion(x, d, c=(0, 0, 0.45), R=0.3):
 
 @pytest.fixture(scope="module")
 def sop_scene():
+    """Sphere over a plane as surfels, and a 13×13 grid of probes just above the plane,
+    baked by tracing (2×2 rays per texel)."""
     from comgs_dr.cameras import gbuffer_scene
+    from comgs_dr.sops.bake import bake
+    from comgs_dr.sops.probes import ProbeSet
     params = _sphere_over_plane()
     scene = gbuffer_scene({"surfels": params}, [], targets="weight")
-    return params, scene
+    g = np.linspace(-0.6, 0.6, 13)
+    gx, gy = np.meshgrid(g, g)
+    pos = np.c_[gx.ravel(), gy.ravel(), np.full(gx.size, 0.02)]
+    probes = ProbeSet(positions=pos, normals=np.tile([0, 0, 1.0], (len(pos), 1)), res=16,
+                      radius=0.2)
+    bake(scene, probes, max_hits=32, supersample=2, progress=False)
+    return params, scene, probes
 
 
 def test_traced_occlusion_matches_analytic(sop_scene, rng):
     from comgs_dr.integrators.visibility import trace_visibility_np
-    _, scene = sop_scene
+    _, scene, _ = sop_scene
     m = 3000
     x = np.c_[rng.uniform(-0.3, 0.3, (m, 2)), np.full(m, 0.01)]
     d = rng.normal(size=(m, 3))
@@ -102,16 +112,9 @@ def test_sop_occlusion_close_to_traced(sop_scene, rng):
     """Probes on a grid above the plane, baked by tracing; their interpolated occlusion at
     plane points approximates the traced occlusion (paper: SOPs cache occlusion)."""
     from comgs_dr.integrators.visibility import trace_visibility_np
-    from comgs_dr.sops.bake import bake
-    from comgs_dr.sops.probes import ProbeSet
     from comgs_dr.sops.query import ProbeGrid
-    _, scene = sop_scene
-    g = np.linspace(-0.6, 0.6, 13)
-    gx, gy = np.meshgrid(g, g)
-    pos = np.c_[gx.ravel(), gy.ravel(), np.full(gx.size, 0.02)]
-    probes = ProbeSet(positions=pos, normals=np.tile([0, 0, 1.0], (len(pos), 1)), res=16,
-                      radius=0.2)
-    bake(scene, probes, max_hits=32, supersample=2, progress=False)
+    _, scene, probes = sop_scene
+    pos = probes.positions
     m = 400
     x = np.c_[rng.uniform(-0.4, 0.4, (m, 2)), np.full(m, 0.01)]
     pts = _points(m, pos=x)
@@ -129,16 +132,9 @@ def test_sop_occlusion_close_to_traced(sop_scene, rng):
 
 
 def test_shading_with_sops_and_trace_agree_on_average(sop_scene, rng):
-    from comgs_dr.sops.bake import bake
-    from comgs_dr.sops.probes import ProbeSet
     from comgs_dr.sops.query import ProbeGrid
-    _, scene = sop_scene
-    g = np.linspace(-0.6, 0.6, 13)
-    gx, gy = np.meshgrid(g, g)
-    pos = np.c_[gx.ravel(), gy.ravel(), np.full(gx.size, 0.02)]
-    probes = ProbeSet(positions=pos, normals=np.tile([0, 0, 1.0], (len(pos), 1)), res=16,
-                      radius=0.2)
-    bake(scene, probes, max_hits=32, supersample=2, progress=False)
+    _, scene, probes = sop_scene
+    pos = probes.positions
     m = 200
     x = np.c_[rng.uniform(-0.35, 0.35, (m, 2)), np.full(m, 0.0)]
     pts = _points(m, pos=x, rough=1.0)
