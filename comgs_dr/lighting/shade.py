@@ -79,8 +79,10 @@ class SopVisibility:
     optimised parameter), ``grid`` a ``sops.query.ProbeGrid`` over the probe positions."""
     name = "sops"
 
-    def __init__(self, atlas, grid, res: int, k: int = 8):
-        self.atlas, self.grid, self.res, self.k = atlas, grid, res, k
+    def __init__(self, atlas, grid, res: int, k: int = 8, filter: str = "bilinear"):
+        if filter not in ("bilinear", "nearest"):
+            raise ValueError(f"SopVisibility: filter must be 'bilinear' or 'nearest', got {filter!r}")
+        self.atlas, self.grid, self.res, self.k, self.filter = atlas, grid, res, k, filter
         self.knn = None
 
     def prepare(self, pts: ShadingPoints):
@@ -92,7 +94,8 @@ class SopVisibility:
     def lookup(self, pid, wi, need_radiance: bool):
         if self.knn is None:
             raise RuntimeError("SopVisibility.lookup before prepare()")
-        taps = octa.bilinear_taps(mi.UInt32(0), octa.dir_to_uv(wi), self.res)   # tile 0
+        taps_fn = octa.bilinear_taps if self.filter == "bilinear" else octa.nearest_taps
+        taps = taps_fn(mi.UInt32(0), octa.dir_to_uv(wi), self.res)               # tile 0
         tile = (self.res + 2) ** 2
         acc = mi.Vector4f(0.0)
         for j in range(self.k):
@@ -158,10 +161,13 @@ def shade(pts: ShadingPoints, env, visibility, cfg: ShadingConfig, seed: int = 0
     tx, ty = brdf.frame_from_normal(n)
     wi = dr.normalize(tx * local.x + ty * local.y + n * local.z)
     wo = dr.gather(mi.Vector3f, dr.detach(pts.wo), pid)
-    E = octa.expand_mode
-    a = dr.gather(mi.Color3f, pts.albedo, pid, mode=E(pts.albedo))
-    r = dr.gather(mi.Float, pts.roughness, pid, mode=E(pts.roughness))
-    m = dr.gather(mi.Float, pts.metallic, pid, mode=E(pts.metallic))
+    # Per-point values are read by S consecutive lanes: ReduceMode.Local pre-reduces equal
+    # neighbouring indices in the backward scatter-add. (Expand would size its per-thread
+    # copies by the point count, which changes per view, and recompile every iteration.)
+    L_ = dr.ReduceMode.Local
+    a = dr.gather(mi.Color3f, pts.albedo, pid, mode=L_)
+    r = dr.gather(mi.Float, pts.roughness, pid, mode=L_)
+    m = dr.gather(mi.Float, pts.metallic, pid, mode=L_)
     f = brdf.eval_brdf(a, r, m, n, wo, wi)
     cos_i = dr.maximum(dr.dot(wi, n), 0.0)
     L_dir = env.eval(wi, env_theta)

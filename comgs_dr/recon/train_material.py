@@ -213,7 +213,9 @@ class MaterialTrainer:
         loss = L.rgb_loss(img, self.targets[i], c.lambda_ssim)
         stats = {}
         if c.lambda_lam > 0:
-            lam = dr.mean(dr.abs(pts.roughness - 1.0)) + dr.mean(pts.metallic)
+            # 1/P as an opaque variable: a literal would recompile the backward per view
+            inv_p = dr.opaque(mi.Float, 1.0 / max(pts.count, 1))
+            lam = (dr.sum(dr.abs(pts.roughness - 1.0)) + dr.sum(pts.metallic)) * inv_p
             loss = loss + c.lambda_lam * lam
         if self.probes is not None and c.lambda_sops > 0:
             # L1(L_in, L_tr) + L1(O, O_tr): channel weights 1/3,1/3,1/3,1, mean × 4

@@ -221,6 +221,15 @@ def bilinear_taps(tile, uv, res: int) -> Taps:
     return Taps(index, weight)
 
 
+def nearest_taps(tile, uv, res: int) -> Taps:
+    """One-tap (nearest-texel) lookup of a bordered atlas; same interface as
+    :func:`bilinear_taps` (4× fewer gathers and backward scatter-adds)."""
+    b = res + 2
+    x = dr.minimum(mi.UInt32(dr.clip(uv.x, 0.0, 1.0) * res), res - 1) + 1
+    y = dr.minimum(mi.UInt32(dr.clip(uv.y, 0.0, 1.0) * res), res - 1) + 1
+    return Taps([(tile * b + y) * b + x], [mi.Float(1.0)])
+
+
 _VEC = {1: "Float", 3: "Color3f", 4: "Vector4f"}
 
 
