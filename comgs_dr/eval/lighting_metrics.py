@@ -202,9 +202,9 @@ def specular_albedo_terms(roughness: float, n_mu: int = 256, n_samples: int = 20
 # ---------------------------------------------------------------------------------------
 # Quadrature operators
 
-@lru_cache(maxsize=16)
+@lru_cache(maxsize=6)
 def _operators(material: str, size: int, azimuth_deg: float, qh: int):
-    """Row-normalised quadrature operators for the sphere pixels: a tuple of [P, D] float32
+    """Row-normalised quadrature operators for the sphere pixels: a tuple of [P, D] float64
     arrays (diffuse: one; matte silver: A-term and B-term), with P masked pixels and D = 2q²
     quadrature directions of the (q, 2q) grid."""
     n, c, mask = sphere_geometry(size, azimuth_deg)
@@ -215,7 +215,7 @@ def _operators(material: str, size: int, azimuth_deg: float, qh: int):
     if material == "diffuse":
         k = np.maximum(cos_i, 0.0) * dw
         k /= np.maximum(k.sum(1, keepdims=True), 1e-300)                      # rows -> 1
-        return (k.astype(np.float32),)
+        return (k,)
     cos_o = n @ c                                                             # [P]
     cos_d = np.sqrt(np.maximum(0.5 + 0.5 * (dirs @ c), 0.0))[None, :]         # [1, D]
     cos_h = np.minimum((np.maximum(cos_o, _COS_EPS)[:, None] + np.maximum(cos_i, _COS_EPS))
@@ -227,16 +227,15 @@ def _operators(material: str, size: int, azimuth_deg: float, qh: int):
     m = np.clip(cos_o, mu[0], mu[-1])
     ka *= (np.interp(m, mu, ta) / np.maximum(ka.sum(1), 1e-300))[:, None]
     kb *= (np.interp(m, mu, tb) / np.maximum(kb.sum(1), 1e-300))[:, None]
-    return ka.astype(np.float32), kb.astype(np.float32)
+    return ka, kb
 
 
 def _apply(material: str, ops, q: np.ndarray) -> np.ndarray:
-    """Radiance [P, 3] of the sphere pixels from the flattened quadrature map q [D, 3]."""
+    """Radiance [P, 3k] of the sphere pixels from k flattened quadrature maps q [D, 3k]."""
     if material == "diffuse":
-        return DIFFUSE_ALBEDO * (ops[0].astype(np.float64) @ q)
-    a = ops[0].astype(np.float64) @ q
-    b = ops[1].astype(np.float64) @ q
-    return SILVER_F0 * a + (1.0 - SILVER_F0) * b
+        return DIFFUSE_ALBEDO * (ops[0] @ q)
+    f0 = np.tile(SILVER_F0, q.shape[1] // 3)
+    return f0 * (ops[0] @ q) + (1.0 - f0) * (ops[1] @ q)
 
 
 def render_sphere(env, material: str = "diffuse", size: int = 64,
@@ -265,15 +264,21 @@ def render_sphere(env, material: str = "diffuse", size: int = 64,
     if qh < 2:
         raise ValueError(f"render_sphere: quad_height must be >= 2, got {quad_height}")
     qmap = area_resize_equirect(env, qh, 2 * qh)                              # [q, 2q, 3]
+    rolled, direct = [], []
     for i, a in enumerate(azimuths):
         shift = a / 360.0 * 2 * qh                 # rotating the camera by a = rolling the map
         if abs(shift - round(shift)) < 1e-9:
-            ops = _operators(material, size, 0.0, qh)
-            q = np.roll(qmap, int(round(shift)), axis=1)
+            rolled.append((i, np.roll(qmap, int(round(shift)), axis=1).reshape(-1, 3)))
         else:
-            ops = _operators(material, size, a % 360.0, qh)
-            q = qmap
-        out[i][mask] = _apply(material, ops, q.reshape(-1, 3))
+            direct.append((i, a))
+    if rolled:                                     # one matmul for all rolled views
+        q = np.concatenate([r for _, r in rolled], 1)                         # [D, 3V]
+        res = _apply(material, _operators(material, size, 0.0, qh), q)        # [P, 3V]
+        for k, (i, _) in enumerate(rolled):
+            out[i][mask] = res[:, 3 * k:3 * k + 3]
+    for i, a in direct:
+        out[i][mask] = _apply(material, _operators(material, size, a % 360.0, qh),
+                              qmap.reshape(-1, 3))
     return out, mask
 
 

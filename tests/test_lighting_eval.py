@@ -1,0 +1,98 @@
+"""Smoke test of benchmarks/lighting_eval.py on two tiny maps with simple masks."""
+import importlib
+import importlib.util
+import json
+import re
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from comgs_dr.lighting.hdr import equirect_directions, pixel_solid_angles
+
+ROOT = Path(__file__).resolve().parents[1]
+COVERAGES = (0.3, 0.5, 0.7, 0.9)       # one mask below 40 % (skipped), one per group
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("lighting_eval",
+                                                  ROOT / "benchmarks" / "lighting_eval.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def simple_mask_bank(n, h=64, w=128, seed=0, **_):
+    """Masks observing everything below a latitude, chosen for the COVERAGES above."""
+    d = equirect_directions(h, w)
+    sa = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
+    out = []
+    for i in range(n):
+        c = COVERAGES[i % len(COVERAGES)]
+        alpha = (d[..., 2] < 2 * c - 1).astype(np.float32)     # z < z0 covers c of the sphere
+        normal = np.where(alpha[..., None] > 0, -d, 0).astype(np.float32)
+        out.append({"alpha": alpha, "normal": normal,
+                    "coverage": float((alpha * sa).sum() / sa.sum())})
+    return out
+
+
+def _auto_exposure(hdr):
+    lum = np.asarray(hdr) @ np.array([0.2126, 0.7152, 0.0722])
+    return float(0.18 / np.exp(np.log(lum + 1e-4).mean()))
+
+
+@pytest.fixture
+def pano_data(monkeypatch):
+    """The real pano_data with the simple mask provider (a stub module if it is missing)."""
+    try:
+        mod = importlib.import_module("comgs_dr.lighting.pano_data")
+    except ImportError:
+        mod = types.ModuleType("comgs_dr.lighting.pano_data")
+        mod.auto_exposure = _auto_exposure
+        monkeypatch.setitem(sys.modules, "comgs_dr.lighting.pano_data", mod)
+    monkeypatch.setattr(mod, "mask_bank", simple_mask_bank, raising=False)
+    return mod
+
+
+def test_lighting_eval_smoke(tmp_path, pano_data, variant, capsys):
+    import torch
+
+    from comgs_dr.lighting.completion import (CompletionConfig, CompletionNet,
+                                              save_weights)
+    from comgs_dr.lighting.envmap import write_exr
+    maps = tmp_path / "maps"
+    d = equirect_directions(16, 32)
+    sky = 0.2 + 0.8 * np.clip(d[..., 2:], 0, 1) * np.array([0.6, 0.8, 1.0])
+    write_exr(maps / "sky.exr", sky, "equirect")
+    room = np.full((16, 32, 3), 0.3) + 0.1 * np.random.default_rng(0).random((16, 32, 3))
+    room[3, 9] = 5e3                                          # a small, very bright lamp
+    write_exr(maps / "room.exr", room, "equirect")
+    (tmp_path / "labels.json").write_text(json.dumps({"room": "indoor", "sky": "outdoor"}))
+    torch.manual_seed(0)
+    net = CompletionNet(CompletionConfig(base_channels=8, levels=2, channel_mults=(1, 2, 2),
+                                         embed_dim=16, groups=4))
+    weights = save_weights(net, tmp_path / "net.pt")
+
+    out = _bench().main(["--maps", str(maps), "--weights", str(weights), "--quick",
+                         "--labels", str(tmp_path / "labels.json"), "--out",
+                         str(tmp_path / "fig"), "--json", str(tmp_path / "r.json"),
+                         "--examples", "1"])
+    lines = capsys.readouterr().out.strip().splitlines()
+    m = re.fullmatch(r"net_wins=(\d+)/(\d+) si_rmse_net=(\S+) si_rmse_best_baseline=(\S+)",
+                     lines[-1])
+    assert m, lines[-1]
+    k, n = int(m.group(1)), int(m.group(2))
+    assert n == 2 * 3 and 0 <= k <= n                 # 3 coverage groups x 2 metrics
+    assert np.isfinite(float(m.group(3))) and np.isfinite(float(m.group(4)))
+    assert out["skipped"] == 1                        # --quick: 2 masks per map, 30 % skipped
+    assert len(out["records"]) == 3 * 4               # kept masks x methods
+    for r in out["records"]:
+        assert all(np.isfinite(r[key]) for key in ("si_rmse", "angular_deg", "nrmse",
+                                                    "pano_si_rmse", "time_s"))
+    assert {r["label"] for r in out["records"]} == {"indoor", "outdoor"}
+    assert (tmp_path / "fig" / "lighting_eval.png").stat().st_size > 0
+    dump = json.loads((tmp_path / "r.json").read_text())
+    assert dump["summary"]["net_wins"] == k and len(dump["records"]) == 12
+    assert any(l.startswith("| coverage | method |") for l in lines)
