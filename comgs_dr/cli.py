@@ -6,6 +6,9 @@ code. Heavy modules are imported inside the ``_cmd_`` functions.
 
     comgs make-dataset object --mesh M --envmap E --out DIR [--views N] [--test-views N]
                               [--res R] [--spp S] [--relight MAP ...] [--seed S] [--variant V]
+    comgs estimate-light SCENE.ply --at X Y Z --out ENV.exr [--label L] [--width W]
+                              [--height H] [--exclude-radius R] [--backend B] [--weights PATH]
+                              [--diffusers-dir DIR]
 """
 from __future__ import annotations
 
@@ -253,10 +256,78 @@ def _cmd_relight(args) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------- estimate-light
+
+def _add_estimate_light(sub) -> None:
+    from .lighting.estimate import EstimateConfig
+    d = EstimateConfig()
+    p = sub.add_parser("estimate-light", help="HDR environment map at a placement in a surfel scene",
+                       description="Trace a 360-degree panorama of the surfel scene at the "
+                                   "position, complete it at EV 0/-2.5/-5, fuse to HDR and write "
+                                   "ENV.exr (equirect), ENV_oct.exr (octahedral), ENV.json "
+                                   "(timings, lights, metadata) and ENV_preview.png.")
+    p.add_argument("scene", metavar="SCENE.ply", help="surfel PLY (3DGS/2DGS/ComGS layouts)")
+    p.add_argument("--at", nargs=3, type=float, required=True, metavar=("X", "Y", "Z"),
+                   help="object placement (world coordinates, Z-up)")
+    p.add_argument("--out", required=True, metavar="ENV.exr", help="output equirect EXR")
+    p.add_argument("--label", choices=("unknown", "indoor", "outdoor"), default=d.label)
+    p.add_argument("--width", type=int, default=d.width, help=f"trace width (default {d.width})")
+    p.add_argument("--height", type=int, default=d.height,
+                   help=f"trace height (default {d.height})")
+    p.add_argument("--exclude-radius", type=float, default=d.exclude_radius,
+                   help="leave out surfels this close to the position (the object itself)")
+    p.add_argument("--max-hits", type=int, default=d.max_hits)
+    p.add_argument("--supersample", type=int, default=d.supersample)
+    p.add_argument("--oct-res", type=int, default=d.oct_res,
+                   help=f"octahedral map side (default {d.oct_res})")
+    p.add_argument("--backend", choices=("net", "mean", "push_pull", "sh", "diffusers"),
+                   default="net", help="completion backend (default net: the shipped weights)")
+    p.add_argument("--weights", metavar="PATH", help="completion-net checkpoint (backend net)")
+    p.add_argument("--net-resolution", type=int, nargs=2, metavar=("H", "W"),
+                   help="network input size (default: the trace size)")
+    p.add_argument("--diffusers-dir", metavar="DIR",
+                   help="local diffusers inpainting model (backend diffusers); prompt "
+                        "embeddings come from its text encoder or DIR/ev_embeddings.pt "
+                        "({'xi_b': [L, D], 'xi_d': [L, D]})")
+    p.add_argument("--steps", type=int, default=30, help="diffusion steps (backend diffusers)")
+    p.add_argument("--variant", default="auto")
+    p.set_defaults(func=_cmd_estimate_light)
+
+
+def _estimate_backend(args):
+    from .lighting import backends
+    if args.backend == "net":
+        res = tuple(args.net_resolution) if args.net_resolution else None
+        return backends.load_network_backend(args.weights, res)
+    if args.backend == "diffusers":
+        if not args.diffusers_dir:
+            raise ValueError("--backend diffusers needs --diffusers-dir DIR")
+        return backends.DiffusersBackend.from_dir(args.diffusers_dir, steps=args.steps)
+    return backends.FillBackend(args.backend)
+
+
+def _cmd_estimate_light(args) -> int:
+    from . import set_variant
+    set_variant(args.variant)
+    from .lighting.estimate import EstimateConfig, estimate_light, write_outputs
+    cfg = EstimateConfig(width=args.width, height=args.height, max_hits=args.max_hits,
+                         exclude_radius=args.exclude_radius, label=args.label,
+                         oct_res=args.oct_res, supersample=args.supersample)
+    r = estimate_light(args.scene, args.at, cfg, _estimate_backend(args))
+    paths = write_outputs(r, args.out)
+    print(f"coverage {100 * r['coverage']:.1f}%, backend {r['meta']['backend']}, "
+          f"{len(r['lights'])} light(s), peak radiance {float(r['hdr'].max()):.3g}")
+    print(f"{'step':<12}{'seconds':>10}")
+    for k, v in r["timings"].items():
+        print(f"{k:<12}{v:>10.3f}")
+    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
 # ----------------------------------------------------------------------------- entry point
 
 _SUBCOMMANDS = (_add_make_dataset, _add_demo, _add_reconstruct, _add_render, _add_decompose,
-                _add_relight)
+                _add_relight, _add_estimate_light)
 
 
 def build_parser() -> argparse.ArgumentParser:

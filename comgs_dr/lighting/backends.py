@@ -212,6 +212,22 @@ class DiffusersBackend(CompletionBackend):
 
     # -- loading --
 
+    EMBEDDINGS_FILE = "ev_embeddings.pt"
+
+    @classmethod
+    def from_dir(cls, path, **kwargs) -> "DiffusersBackend":
+        """Backend of a local model folder; when it holds ``ev_embeddings.pt``
+        (``torch.save({"xi_b": [L, D], "xi_d": [L, D]})``) those embeddings are used."""
+        p = Path(path)
+        emb = p / cls.EMBEDDINGS_FILE
+        if emb.is_file() and "xi_b" not in kwargs:
+            d = torch.load(emb, map_location="cpu", weights_only=True)
+            if not isinstance(d, dict) or not {"xi_b", "xi_d"} <= set(d):
+                raise ValueError(f"DiffusersBackend: {emb} must hold a dict with 'xi_b' and "
+                                 f"'xi_d'")
+            kwargs.update(xi_b=d["xi_b"], xi_d=d["xi_d"])
+        return cls(p, **kwargs)
+
     @staticmethod
     def _load_components(path: Path) -> dict:
         diffusers = _import_diffusers()
@@ -223,11 +239,12 @@ class DiffusersBackend(CompletionBackend):
                                         f"(expected the diffusers layout)")
         import json
         kw = {"local_files_only": True}
+        mkw = {**kw, "low_cpu_mem_usage": False}       # no 'accelerate' needed
         sched_cfg = json.loads((path / "scheduler" / "scheduler_config.json").read_text())
         sched_cls = getattr(diffusers, sched_cfg.get("_class_name", "DDIMScheduler"))
         comps = {"unet": diffusers.UNet2DConditionModel.from_pretrained(path, subfolder="unet",
-                                                                        **kw),
-                 "vae": diffusers.AutoencoderKL.from_pretrained(path, subfolder="vae", **kw),
+                                                                        **mkw),
+                 "vae": diffusers.AutoencoderKL.from_pretrained(path, subfolder="vae", **mkw),
                  "scheduler": sched_cls.from_pretrained(path, subfolder="scheduler", **kw)}
         if (path / "text_encoder").is_dir() and (path / "tokenizer").is_dir():
             index = path / "model_index.json"

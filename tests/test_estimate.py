@@ -1,0 +1,240 @@
+"""The lighting-estimation stage end to end on a tiny surfel scene (64×32 trace, a tiny
+random completion net): outputs, files, CLI, and each error case."""
+import json
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+from comgs_dr.lighting import backends, completion, envmap, hdr
+from comgs_dr.lighting.estimate import (EstimateConfig, backend_input, estimate_light,
+                                        output_paths, sanitize_trace, write_outputs)
+
+W, H = 64, 32
+POS = np.array([0.05, -0.1, 0.2])
+SMALL = dict(width=W, height=H, oct_res=16, max_hits=16)
+TINY = dict(base_channels=8, levels=2, channel_mults=(1, 2, 2), embed_dim=16, groups=4)
+
+
+def _mesh_surfels(vertices, faces, rgb, n, seed):
+    import trimesh
+    from comgs_dr.surfels.from_mesh import from_mesh
+    m = trimesh.Trimesh(np.asarray(vertices, float), faces, process=False)
+    m.visual.vertex_colors = np.tile(np.r_[rgb, 255], (len(m.vertices), 1)).astype(np.uint8)
+    return from_mesh(m, n, seed=seed, opacity=0.99)
+
+
+def _scene_params():
+    """Grey ground (4×4 at z = 0) and a white vertical panel (a 'window') at x = 0.8."""
+    from comgs_dr.surfels import SurfelParams
+    ground = _mesh_surfels([[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]],
+                           [[0, 1, 2], [0, 2, 3]], [110, 120, 100], 3000, 1)
+    panel = _mesh_surfels([[0.8, -0.3, 0.4], [0.8, 0.3, 0.4], [0.8, 0.3, 0.9], [0.8, -0.3, 0.9]],
+                          [[0, 1, 2], [0, 2, 3]], [255, 255, 250], 500, 2)
+    return SurfelParams.concat([ground, panel])
+
+
+def _scene(params):
+    from comgs_dr.cameras import gbuffer_scene
+    return gbuffer_scene({"scene": params}, [], targets="weight")
+
+
+@pytest.fixture(scope="module")
+def tiny_weights(tmp_path_factory):
+    torch.manual_seed(0)
+    net = completion.CompletionNet(completion.CompletionConfig(**TINY))
+    return completion.save_weights(net, tmp_path_factory.mktemp("net") / "tiny.pt")
+
+
+@pytest.fixture(scope="module")
+def params():
+    return _scene_params()
+
+
+@pytest.fixture(scope="module")
+def result(params, tiny_weights):
+    backend = backends.load_network_backend(tiny_weights)
+    return estimate_light(_scene(params), POS, EstimateConfig(label="indoor", **SMALL), backend)
+
+
+def test_end_to_end_outputs(result, params):
+    from comgs_dr.integrators.panorama import PanoramaConfig, trace_panorama
+    r = result
+    # the backend saw the trace's display values, coverage and normals
+    t = trace_panorama(_scene(params), POS, PanoramaConfig(width=W, height=H, max_hits=16))
+    np.testing.assert_array_equal(r["input"]["rgb"], np.clip(t["ldr"], 0, 1))
+    np.testing.assert_array_equal(r["input"]["mask"], t["alpha"])
+    np.testing.assert_array_equal(r["input"]["normal"], t["normal"])
+    assert r["hdr"].shape == (H, W, 3) and r["hdr"].dtype == np.float32
+    assert r["oct"].shape == (16, 16, 3) and np.isfinite(r["oct"]).all()
+    assert np.isfinite(r["hdr"]).all() and r["hdr"].min() >= 0
+    assert r["hdr"].max() <= hdr.saturation_limit() + 1e-4
+    assert sorted(r["ldrs"]) == [-5.0, -2.5, 0.0]
+    np.testing.assert_allclose(r["hdr"], hdr.fuse_brackets(r["ldrs"]), rtol=1e-6)
+    assert r["hdr"].max() > 1.0                  # the random net's dark brackets add range
+    assert 0.42 < r["coverage"] < 0.7                      # the ground + a panel
+    assert r["meta"]["label"] == "indoor" and r["meta"]["evs"] == [0.0, -2.5, -5.0]
+    assert r["meta"]["backend"] == "NetworkBackend" and r["meta"]["nonfinite_pixels"] == 0
+    t = r["timings"]
+    for k in ("trace", "completion", "fusion", "octahedral", "total"):
+        assert t[k] >= 0.0, k
+    assert t["total"] >= t["trace"] + t["completion"] + t["fusion"] + t["octahedral"]
+    # the lower hemisphere is observed: mask ~1 below the horizon, 0 straight up
+    m = r["input"]["mask"]
+    assert m[-4:].min() > 0.9 and m[0].max() < 1e-3
+    # observed, unsaturated pixels come back as their decoded LDR (EV 0 only; blend with the
+    # prediction in proportion to 1 − alpha, sRGB slope ≤ 2.4 above 0.04)
+    rgb = r["input"]["rgb"]
+    sel = (m > 0.95) & (rgb.max(-1) < 0.8)
+    assert sel.sum() > 200
+    err = np.abs(r["hdr"] - hdr.srgb_decode(rgb.astype(np.float64))).max(-1)
+    assert np.all(err[sel] <= 2.4 * (1 - m[sel]) + 1e-5)
+    # the octahedral map holds the same mean radiance (both maps ~ equal-area averages)
+    dw = hdr.pixel_solid_angles(H, W)
+    mean_eq = (r["hdr"] * dw[..., None]).sum((0, 1)) / (4 * np.pi)
+    np.testing.assert_allclose(r["oct"].mean((0, 1)), mean_eq, rtol=0.15)
+    for light in r["lights"]:
+        assert abs(np.linalg.norm(light["direction"]) - 1) < 1e-6 and light["solid_angle"] > 0
+    assert len(r["lights"]) <= 3
+
+
+def test_fill_backend_end_to_end_and_deterministic(params, result):
+    scene = _scene(params)
+    cfg = EstimateConfig(**SMALL)
+    a = estimate_light(scene, POS, cfg, backends.FillBackend("push_pull"))
+    b = estimate_light(scene, POS, cfg, backends.FillBackend("push_pull"))
+    assert np.array_equal(a["hdr"], b["hdr"])
+    # a fill cannot exceed the EV-0 white level; the traced inputs match the net run
+    assert a["hdr"].max() <= 1.0 + 1e-5 and a["meta"]["backend"] == "FillBackend(push_pull)"
+    assert np.array_equal(a["input"]["rgb"], result["input"]["rgb"])
+
+
+def test_write_outputs_and_reload(result, tmp_path):
+    out = tmp_path / "sub" / "env.exr"
+    paths = write_outputs(result, out)
+    assert paths == output_paths(out)
+    for p in paths.values():
+        assert p.is_file() and p.stat().st_size > 0, p
+    assert paths["oct"].name == "env_oct.exr" and paths["preview"].name == "env_preview.png"
+    eq, layout = envmap.read_envmap_file(paths["equirect"])
+    assert layout == "equirect" and eq.shape == (H, W, 3)
+    np.testing.assert_allclose(eq, result["hdr"], rtol=1e-6)
+    octm, layout = envmap.read_envmap_file(paths["oct"])
+    assert layout == "octahedral"
+    np.testing.assert_allclose(octm, result["oct"], rtol=1e-6)
+    doc = json.loads(paths["json"].read_text())
+    assert doc["meta"]["coverage"] == pytest.approx(result["coverage"])
+    assert set(doc["timings"]) >= {"trace", "completion", "fusion", "total"}
+    assert len(doc["lights"]) == len(result["lights"])
+    assert doc["files"]["oct"] == "env_oct.exr"
+    from PIL import Image
+    im = Image.open(paths["preview"])
+    assert im.size == (2 * W, 4 * (H + 16))                # 7 panels, two per row
+    with pytest.raises(ValueError, match=r"\.exr"):
+        write_outputs(result, tmp_path / "env.png")
+
+
+def test_cli_on_ply(params, tiny_weights, tmp_path, capsys):
+    from comgs_dr.cli import main
+    from comgs_dr.surfels import save_ply
+    ply = tmp_path / "scene.ply"
+    save_ply(params, ply)
+    out = tmp_path / "env.exr"
+    args = ["estimate-light", str(ply), "--at", *map(str, POS), "--out", str(out),
+            "--width", str(W), "--height", str(H), "--oct-res", "16", "--label", "indoor"]
+    assert main(args + ["--weights", str(tiny_weights)]) == 0
+    text = capsys.readouterr().out
+    for key in ("trace", "completion", "fusion", "total", "coverage"):
+        assert key in text, key
+    assert out.is_file() and (tmp_path / "env_oct.exr").is_file()
+    doc = json.loads((tmp_path / "env.json").read_text())
+    assert doc["meta"]["source"] == str(ply) and doc["meta"]["colour_space"] == "srgb"
+    assert main(args + ["--backend", "sh"]) == 0
+    assert "FillBackend(sh)" in capsys.readouterr().out
+    # errors -> exit code 2 with a message
+    assert main(args + ["--weights", str(tmp_path / "none.pt")]) == 2
+    assert "comgs train-completion" in capsys.readouterr().err
+    bad = ["estimate-light", str(ply), "--at", "9", "0", "0", "--out", str(out), "--width",
+           str(W), "--height", str(H), "--backend", "mean"]
+    assert main(bad) == 2
+    assert "bounding box" in capsys.readouterr().err
+    assert main(args + ["--backend", "diffusers"]) == 2
+    assert "--diffusers-dir" in capsys.readouterr().err
+
+
+def test_position_outside_scene(params):
+    with pytest.raises(ValueError, match=r"cannot trace the scene .* bounding box"):
+        estimate_light(_scene(params), [5.0, 0.0, 0.3], EstimateConfig(**SMALL),
+                       backends.FillBackend("mean"))
+    with pytest.raises(ValueError, match="leaves out all"):
+        estimate_light(_scene(params), POS, EstimateConfig(exclude_radius=50.0, **SMALL),
+                       backends.FillBackend("mean"))
+
+
+def test_zero_coverage_raises():
+    # two tiny surfels that fall between the pixel rays: nothing is observed
+    from comgs_dr.surfels import SurfelParams
+    from comgs_dr.surfels.kernel import SH_C0
+    means = np.array([[1.0, 0.37, 0.2], [-1.0, -0.41, -0.3]])
+    p = SurfelParams.from_numpy(means=means, quats=np.tile([1.0, 0, 0, 0], (2, 1)),
+                                log_scales=np.full((2, 2), np.log(1e-3)),
+                                opacity_logit=np.full(2, 6.0),
+                                sh=np.full((2, 1, 3), 0.5 / SH_C0))
+    with pytest.raises(ValueError, match="zero coverage"):
+        estimate_light(_scene(p), np.zeros(3), EstimateConfig(**SMALL),
+                       backends.FillBackend("mean"))
+
+
+def test_nonfinite_trace_sanitised(params, monkeypatch, caplog):
+    from comgs_dr.integrators import panorama
+    real = panorama.trace_panorama
+
+    def nan_trace(*a, **k):
+        t = real(*a, **k)
+        t["ldr"][-3:, :10] = np.nan                      # observed ground pixels
+        t["normal"][-1, 20] = np.inf
+        return t
+
+    monkeypatch.setattr(panorama, "trace_panorama", nan_trace)
+    with caplog.at_level(logging.WARNING, logger="comgs_dr.lighting.estimate"):
+        r = estimate_light(_scene(params), POS, EstimateConfig(**SMALL),
+                           backends.FillBackend("push_pull"))
+    assert r["meta"]["nonfinite_pixels"] == 31
+    assert any("31 traced pixels hold NaN/Inf" in rec.getMessage() for rec in caplog.records)
+    assert np.isfinite(r["hdr"]).all() and np.isfinite(r["input"]["rgb"]).all()
+    assert np.all(r["input"]["mask"][-3:, :10] == 0) and r["input"]["mask"][-1, 20] == 0
+    assert r["input"]["mask"][-3:, 10:19].min() > 0.9
+
+
+def test_sanitize_and_backend_input_units():
+    t = {"ldr": np.full((2, 4, 3), 0.5, np.float32), "rgb": np.full((2, 4, 3), 2.0, np.float32),
+         "normal": np.zeros((2, 4, 3), np.float32), "alpha": np.ones((2, 4), np.float32),
+         "depth": np.ones((2, 4), np.float32), "meta": {"colour_space": "linear"}}
+    t["alpha"][0, 1] = np.nan
+    t["rgb"][1, 2, 0] = np.inf
+    s, n = sanitize_trace(t)
+    assert n == 2 and s["alpha"][0, 1] == 0 and s["depth"][1, 2] == 0
+    assert np.isnan(t["alpha"][0, 1])                    # the input is not modified
+    rgb, _, mask = backend_input(s)
+    assert rgb[0, 0, 0] == pytest.approx(1.0)            # linear 2.0 clipped at EV 0
+    s["rgb"][:] = 0.2
+    rgb, _, _ = backend_input(s)
+    np.testing.assert_allclose(rgb, hdr.srgb_encode(0.2), rtol=1e-6)
+    s["meta"] = {"colour_space": "srgb"}
+    rgb, _, mask = backend_input(s)                      # sRGB fields: their display value
+    assert np.all(rgb == np.where(mask[..., None] > 0, 0.5, 0.0)) and mask.sum() == 6
+
+
+def test_config_and_default_backend_errors(params, tmp_path, monkeypatch):
+    for bad in (dict(label="space"), dict(evs=(-2.5, -5.0)), dict(evs=(0.0, 1.0)),
+                dict(oct_res=1), dict(colour_space="aces")):
+        with pytest.raises(ValueError, match="EstimateConfig"):
+            estimate_light(_scene(params), POS, EstimateConfig(**{**SMALL, **bad}),
+                           backends.FillBackend("mean"))
+    monkeypatch.setattr(backends, "DEFAULT_WEIGHTS", tmp_path / "completion.pt")
+    with pytest.raises(FileNotFoundError, match="comgs train-completion"):
+        estimate_light(_scene(params), POS, EstimateConfig(**SMALL))
+    with pytest.raises(FileNotFoundError, match="scene file not found"):
+        estimate_light(tmp_path / "missing.ply", POS, EstimateConfig(**SMALL),
+                       backends.FillBackend("mean"))
