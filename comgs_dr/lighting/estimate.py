@@ -155,7 +155,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     ``hdr`` [H, W, 3] linear equirect (trace size), ``oct`` [R, R, 3] octahedral map,
     ``ldrs`` {ev: [H, W, 3]} completions, ``input`` {"rgb", "normal", "mask"} fed to the
     backend, ``lights`` (``hdr.extract_lights``), ``coverage`` (solid-angle fraction),
-    ``timings`` {trace, completion, fusion, octahedral, total} in seconds and ``meta``.
+    ``timings`` {load, trace, completion, fusion, octahedral, lights, total} in seconds and ``meta``.
     Errors: see the module docstring.
     """
     from ..integrators.panorama import trace_panorama
@@ -213,8 +213,10 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
 
     t = time.perf_counter()
     oct_map = envmap.equirect_to_oct_np(radiance, int(cfg.oct_res)).astype(np.float32)
-    lights = hdr.extract_lights(radiance, k=int(cfg.n_lights))
     timings["octahedral"] = time.perf_counter() - t
+    t = time.perf_counter()
+    lights = hdr.extract_lights(radiance, k=int(cfg.n_lights))
+    timings["lights"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
 
     meta = {"source": source, "position": trace["meta"]["position"], "label": cfg.label,
