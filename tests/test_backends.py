@@ -83,10 +83,11 @@ def test_fill_backend_errors():
 
 def test_network_backend_from_weights(tiny_weights):
     rgb, normal, mask = _inputs(2)
-    b = backends.load_network_backend(tiny_weights)
-    assert isinstance(b, completion.NetworkBackend)
+    b = backends.load_network_backend(tiny_weights, resolution=(H, W))
+    assert isinstance(b, completion.NetworkBackend) and b.resolution == (H, W)
     out = b.complete(rgb, normal, mask, label=1)
-    again = backends.load_network_backend(tiny_weights).complete(rgb, normal, mask, label=1)
+    again = backends.load_network_backend(tiny_weights, (H, W)).complete(rgb, normal, mask,
+                                                                         label=1)
     for ev in (0.0, -2.5, -5.0):
         assert out[ev].shape == (H, W, 3) and np.isfinite(out[ev]).all()
         assert np.array_equal(out[ev], again[ev])                            # deterministic
