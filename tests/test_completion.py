@@ -198,7 +198,8 @@ def test_network_backend_non_multiple_size():
     normal = rng.normal(size=(h, w, 3)).astype(np.float32)
     mask = (rng.uniform(size=(h, w)) < 0.5).astype(np.float32)
     rgb[mask == 0] = np.nan
-    backend = C.NetworkBackend(m)
+    assert C.NetworkBackend(m).net_size(h, w) == m.config.train_resolution   # default
+    backend = C.NetworkBackend(m, resolution="input")
     assert isinstance(backend, C.CompletionBackend)
     assert backend.net_size(h, w) == (32, 64)
     out = backend.complete(rgb, normal, mask, label=1)

@@ -55,7 +55,7 @@ import numpy as np
 
 from ..lighting.brdf import ALPHA_MIN
 from ..lighting.envmap import equirect_dir_to_uv_np, sample_equirect_np
-from ..lighting.hdr import equirect_directions, pixel_solid_angles
+from ..lighting.hdr import area_resize_equirect, equirect_directions, pixel_solid_angles
 
 __all__ = ["MATERIALS", "ARRAY_AZIMUTHS", "SILVER_F0", "SILVER_ROUGHNESS", "DIFFUSE_ALBEDO",
            "area_resize_equirect", "sphere_geometry", "render_sphere", "render_spheres",
@@ -81,33 +81,6 @@ def _check_map(env, name: str) -> np.ndarray:
     if not np.isfinite(env).all():
         raise ValueError(f"{name}: map has {int((~np.isfinite(env)).sum())} NaN/Inf values")
     return env
-
-
-def _overlap(edges_in, edges_out) -> np.ndarray:
-    """[n_out, n_in] overlap lengths of 1D cells given by increasing edge arrays."""
-    lo = np.maximum(edges_out[:-1, None], edges_in[None, :-1])
-    hi = np.minimum(edges_out[1:, None], edges_in[None, 1:])
-    return np.maximum(hi - lo, 0.0)
-
-
-def area_resize_equirect(env, h: int, w: int) -> np.ndarray:
-    """Resample an [H, W, C] equirect map to [h, w, C] by solid-angle-weighted area averaging.
-
-    Separable and exact for any sizes: a target pixel is the mean over its solid angle of the
-    piecewise-constant source (columns weighted by overlap in u, rows by overlap in cos θ), so
-    Σ L dω is preserved. float64 out."""
-    env = np.asarray(env, np.float64)
-    if env.ndim != 3 or h < 1 or w < 1:
-        raise ValueError(f"area_resize_equirect: need an [H, W, C] map and h, w >= 1, got "
-                         f"{env.shape} -> ({h}, {w})")
-    hin, win = env.shape[:2]
-    if (hin, win) == (h, w):
-        return env.copy()
-    cu = _overlap(np.linspace(0, 1, win + 1), np.linspace(0, 1, w + 1))           # [w, W]
-    cv = _overlap(-np.cos(np.linspace(0, pi, hin + 1)), -np.cos(np.linspace(0, pi, h + 1)))
-    cu /= cu.sum(1, keepdims=True)
-    cv /= cv.sum(1, keepdims=True)                                                # [h, H]
-    return np.einsum("ij,jkc,lk->ilc", cv, env, cu, optimize=True)
 
 
 # ---------------------------------------------------------------------------------------

@@ -63,10 +63,12 @@ class CompletionConfig:
     n_labels: int = 3
     padding: str = "polar"          # vertical padding: "polar" or "replicate"
     latitude_channels: bool = True
+    train_resolution: tuple = (64, 128)      # (H, W) the weights were trained at; inference size
     version: str = FORMAT_VERSION
 
     def __post_init__(self):
         object.__setattr__(self, "channel_mults", tuple(int(m) for m in self.channel_mults))
+        object.__setattr__(self, "train_resolution", tuple(int(m) for m in self.train_resolution))
         if (self.levels < 1 or len(self.channel_mults) != self.levels + 1 or self.ev_min >= 0
                 or self.padding not in ("polar", "replicate") or min(
                     self.base_channels, self.embed_dim, self.groups, *self.channel_mults) < 1):
@@ -84,7 +86,8 @@ class CompletionConfig:
         return 2 ** self.levels, 2 ** (self.levels + 1)
 
     def to_dict(self) -> dict:
-        return {**asdict(self), "channel_mults": list(self.channel_mults)}
+        return {**asdict(self), "channel_mults": list(self.channel_mults),
+                "train_resolution": list(self.train_resolution)}
 
     @classmethod
     def from_dict(cls, d: dict) -> "CompletionConfig":
@@ -403,11 +406,17 @@ class CompletionBackend(abc.ABC):
 
 class NetworkBackend(CompletionBackend):
     """CompletionNet as a backend. Inputs are resized (``resize_equirect``) to ``resolution``
-    or by default up to the next valid multiple; the prediction is resized back and blended with
-    the original pixels at the original size, so observed pixels come back exactly (EV 0)."""
+    (default: the size the weights were trained at, ``config.train_resolution``; ``"input"``:
+    the input's size rounded up to the next valid multiple); the prediction is resized back and
+    blended with the original pixels at the original size, so observed pixels come back exactly
+    (EV 0)."""
 
-    def __init__(self, model: CompletionNet, resolution: tuple[int, int] | None = None):
+    def __init__(self, model: CompletionNet, resolution: tuple[int, int] | str | None = None):
         self.model = model.eval()
+        if resolution is None:
+            resolution = model.config.train_resolution
+        if resolution == "input":
+            resolution = None
         if resolution is not None:
             model.check_size(*resolution)
         self.resolution = resolution

@@ -53,7 +53,7 @@ except ImportError:  # pragma: no cover
 
 __all__ = ["srgb_encode", "srgb_decode", "expose", "unexpose", "fuse_brackets",
            "DEFAULT_EVS", "saturation_limit", "pixel_solid_angles", "equirect_directions",
-           "label_equirect", "extract_lights", "real_sh_basis", "mean_fill",
+           "label_equirect", "area_resize_equirect", "extract_lights", "real_sh_basis", "mean_fill",
            "push_pull_fill", "sh_fill"]
 
 DEFAULT_EVS = (0.0, -2.5, -5.0)
@@ -164,6 +164,33 @@ def equirect_directions(h: int, w: int) -> np.ndarray:
     """[H, W, 3] unit directions of the pixel centres (Blender Z-up equirect)."""
     u, v = np.meshgrid((np.arange(w) + 0.5) / w, (np.arange(h) + 0.5) / h)
     return equirect_uv_to_dir_np(np.stack([u.ravel(), v.ravel()], -1)).reshape(h, w, 3)
+
+
+def _overlap(edges_in, edges_out) -> np.ndarray:
+    """[n_out, n_in] overlap lengths of 1D cells given by increasing edge arrays."""
+    lo = np.maximum(edges_out[:-1, None], edges_in[None, :-1])
+    hi = np.minimum(edges_out[1:, None], edges_in[None, 1:])
+    return np.maximum(hi - lo, 0.0)
+
+
+def area_resize_equirect(env, h: int, w: int) -> np.ndarray:
+    """Resample an [H, W, C] equirect map to [h, w, C] by solid-angle-weighted area averaging.
+
+    Separable and exact for any sizes: a target pixel is the mean over its solid angle of the
+    piecewise-constant source (columns weighted by overlap in u, rows by overlap in cos θ), so
+    Σ L dω is preserved. float64 out."""
+    env = np.asarray(env, np.float64)
+    if env.ndim != 3 or h < 1 or w < 1:
+        raise ValueError(f"area_resize_equirect: need an [H, W, C] map and h, w >= 1, got "
+                         f"{env.shape} -> ({h}, {w})")
+    hin, win = env.shape[:2]
+    if (hin, win) == (h, w):
+        return env.copy()
+    cu = _overlap(np.linspace(0, 1, win + 1), np.linspace(0, 1, w + 1))           # [w, W]
+    cv = _overlap(-np.cos(np.linspace(0, pi, hin + 1)), -np.cos(np.linspace(0, pi, h + 1)))
+    cu /= cu.sum(1, keepdims=True)
+    cv /= cv.sum(1, keepdims=True)                                                # [h, H]
+    return np.einsum("ij,jkc,lk->ilc", cv, env, cu, optimize=True)
 
 
 def label_equirect(mask) -> tuple[np.ndarray, int]:

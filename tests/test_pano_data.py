@@ -1,0 +1,168 @@
+"""Completion training data: energy-preserving resizes and splats, auto exposure, procedural
+skies/rooms, traced masks, training batches, loss, and a tiny end-to-end training run."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from comgs_dr.lighting import completion as C
+from comgs_dr.lighting import pano_data as P
+from comgs_dr.lighting.envmap import write_exr
+from comgs_dr.lighting.hdr import area_resize_equirect
+
+
+def _power(img):
+    return (img * P.pixel_solid_angles(*img.shape[:2])[..., None]).sum((0, 1))
+
+
+def test_solid_angles_sum_to_4pi():
+    assert P.pixel_solid_angles(16, 32).shape == (16, 32)
+    assert abs(P.pixel_solid_angles(16, 32).sum() - 4 * np.pi) < 1e-9
+
+
+def test_area_resize_preserves_power_of_a_tiny_sun():
+    img = np.full((64, 128, 3), 0.5, np.float32)
+    img[20, 37] = 1e6
+    for h, w in ((16, 32), (15, 37), (100, 200)):
+        small = area_resize_equirect(img, h, w)
+        np.testing.assert_allclose(_power(small), _power(img), rtol=1e-5)
+    np.testing.assert_allclose(area_resize_equirect(np.full((30, 50, 3), 2.0), 7, 9), 2.0, rtol=1e-6)
+    with pytest.raises(ValueError, match="h, w >= 1"):
+        area_resize_equirect(img, 0, 32)
+
+
+def test_splat_direction_deposits_exact_power():
+    img = np.zeros((32, 64, 3))
+    d = np.array([0.3, -0.5, 0.6])
+    P._splat_direction(img, d / np.linalg.norm(d), np.array([2.0, 1.0, 0.5]))
+    np.testing.assert_allclose(_power(img), [2.0, 1.0, 0.5], rtol=1e-9)
+
+
+def test_auto_exposure_scale_and_errors():
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0.01, 2.0, (16, 32, 3))
+    k = P.auto_exposure(img)
+    assert k > 0 and abs(P.auto_exposure(img * 8.0) * 8.0 / k - 1) < 1e-6
+    with pytest.raises(ValueError, match="black"):
+        P.auto_exposure(np.zeros((8, 16, 3)))
+    bad = img.copy()
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        P.auto_exposure(bad)
+    with pytest.raises(ValueError, match="equirect"):
+        P.auto_exposure(np.ones((8, 16)))
+
+
+def test_load_map_resizes_files_and_rejects_nan(tmp_path):
+    img = np.full((40, 80, 3), 0.25, np.float32)
+    img[10, 10] = 1e6
+    write_exr(tmp_path / "a.exr", img, "equirect")
+    out = P.load_map(tmp_path / "a.exr", 16, 32)
+    assert out.shape == (16, 32, 3) and np.isfinite(out).all()
+    np.testing.assert_allclose(_power(out), _power(img), rtol=1e-4)
+    img[3, 3] = np.nan
+    write_exr(tmp_path / "b.exr", img, "equirect")
+    with pytest.raises(ValueError, match="NaN"):
+        P.load_map(tmp_path / "b.exr", 16, 32)
+
+
+def test_rotate_u_round_trip():
+    x = np.random.default_rng(1).random((4, 8, 3))
+    np.testing.assert_array_equal(P.rotate_u(P.rotate_u(x, 3), -3), x)
+
+
+def test_sunsky_panorama_has_sky_sun_and_ground():
+    rng = np.random.default_rng(3)
+    found_sun = 0
+    for _ in range(4):
+        img = P.sunsky_panorama(rng, 32, 64)
+        assert img.shape == (32, 64, 3) and np.isfinite(img).all() and img.min() >= 0
+        lum = img @ P.LUMA
+        assert lum[:16].mean() > 0 and lum[16:].mean() > 0          # sky and lit ground
+        found_sun += lum.max() > 100 * np.median(lum)
+    assert found_sun >= 2                                             # 85 % of skies have a sun
+
+
+def test_room_panorama_is_lit_by_emitters():
+    img = P.room_panorama(np.random.default_rng(5), 16, 32, spp=4)
+    assert img.shape == (16, 32, 3) and np.isfinite(img).all() and img.min() >= 0
+    lum = img @ P.LUMA
+    assert lum.max() > 5 * np.median(lum) > 0
+
+
+def test_mask_bank_masks_and_normals():
+    masks = P.mask_bank(4, 16, 32, seed=2, n_surfels=4000, points_per_scene=2)
+    assert len(masks) == 4
+    for m in masks:
+        a, n = m["alpha"], m["normal"]
+        assert a.shape == (16, 32) and n.shape == (16, 32, 3)
+        assert a.min() >= 0 and a.max() <= 1 + 1e-6
+        sa = P.pixel_solid_angles(16, 32)
+        assert abs((a * sa).sum() / sa.sum() - m["coverage"]) < 1e-3
+        cov = a > 0.5
+        np.testing.assert_allclose(np.linalg.norm(n[cov], axis=-1), 1.0, atol=1e-3)
+        assert 0.05 < m["coverage"] < 1.0
+
+
+def test_completion_loss_zero_at_target_and_normalised():
+    t = torch.rand(2, 3, 16, 32)
+    assert P is not None
+    from comgs_dr.lighting.train_completion import completion_loss
+    assert completion_loss(t, t, 16, 32).item() == 0.0
+    # the same relative error weighs the same on a dark (EV -5) and a bright target
+    dark, bright = t * 0.01, t
+    l_dark = completion_loss(dark * 1.1, dark, 16, 32).item()
+    l_bright = completion_loss(bright * 1.1, bright, 16, 32).item()
+    assert l_dark > 0.1 * l_bright
+
+
+@pytest.fixture(scope="module")
+def tiny_training(tmp_path_factory):
+    from comgs_dr.lighting.train_completion import TrainCompletionConfig, build_data, train
+    d = tmp_path_factory.mktemp("tc")
+    maps = d / "maps"
+    maps.mkdir()
+    rng = np.random.default_rng(0)
+    write_exr(maps / "yard.exr", rng.uniform(0.1, 2, (32, 64, 3)).astype(np.float32), "equirect")
+    write_exr(maps / "held.exr", rng.uniform(0.1, 2, (32, 64, 3)).astype(np.float32), "equirect")
+    cfg = TrainCompletionConfig(out=d / "w.pt", data_dir=d / "data", maps_dir=maps,
+                                held_out=("held",), n_sky=3, n_rooms=2, n_masks=4, room_spp=1,
+                                height=16, width=32, base_channels=8, minutes=0.05,
+                                max_steps=12, batch=2, net={"levels": 2,
+                                                           "channel_mults": (1, 2, 2)})
+    info = train(cfg, progress=False, command="test")
+    return cfg, info, build_data(cfg, progress=False)
+
+
+def test_training_data_excludes_held_out_maps(tiny_training):
+    cfg, info, data = tiny_training
+    assert info["data"]["poly_haven"] == ["yard"]
+    assert data["maps"].shape == (1 + 3 + 2, 16, 32, 3) and np.isfinite(data["maps"]).all()
+    assert sorted(set(data["source"].tolist())) == [0, 1, 2]
+
+
+def test_sampler_batches(tiny_training):
+    from comgs_dr.lighting.train_completion import Sampler
+    cfg, _, data = tiny_training
+    s = Sampler(data, cfg, 0)
+    rgb, nor, msk, tgt, evs, lab = s.batch(6, "ev")
+    assert rgb.shape == tgt.shape == nor.shape == (6, 3, 16, 32) and msk.shape == (6, 1, 16, 32)
+    assert ((evs >= C.EV_MIN) & (evs <= 0)).all() and lab.max() <= 2
+    assert float(rgb[(msk == 0).expand_as(rgb)].abs().max()) == 0.0   # nothing in the holes
+    assert float(rgb[(msk > 0).expand_as(rgb)].mean()) > 0.0          # un-premultiplied colour
+    rgb0, *_, tgt0, evs0, _ = s.batch(4, "zero")
+    assert (evs0 == 0).all()
+
+
+def test_tiny_training_writes_loadable_weights(tiny_training):
+    cfg, info, _ = tiny_training
+    assert info["steps"] >= 1 and np.isfinite(info["history"][-1]["loss"])
+    model = C.load_weights(cfg.out)
+    assert model.config.train_resolution == (16, 32)
+    log = json.loads(cfg.out.with_suffix(".json").read_text())
+    assert log["command"] == "test" and log["data"]["held_out"] == ["held"]
+    out = C.NetworkBackend(model).complete(np.zeros((16, 32, 3), np.float32),
+                                           np.zeros((16, 32, 3), np.float32),
+                                           np.zeros((16, 32), np.float32))
+    assert all(np.isfinite(v).all() for v in out.values())
