@@ -190,8 +190,11 @@ def test_diffusers_ev_embedding_and_from_dir(tiny_diffusion, tmp_path):
     d2 = tmp_path / "sd"
     shutil.copytree(d, d2)
     torch.save(emb, d2 / backends.DiffusersBackend.EMBEDDINGS_FILE)
+    (d2 / "text_encoder").mkdir()                      # unusable without transformers:
+    (d2 / "tokenizer").mkdir()                         # skipped, the embeddings are given
     b2 = backends.DiffusersBackend.from_dir(d2, steps=1)
     torch.testing.assert_close(b2.ev_embedding(-1.0), b.ev_embedding(-1.0))
+    assert b2.text_encoder is None
 
 
 def test_diffusers_normals_channels():

@@ -135,7 +135,8 @@ class DiffusersBackend(CompletionBackend):
 
     ``source``: a local folder in the diffusers layout (``unet/``, ``vae/``, ``scheduler/``
     and optionally ``text_encoder/`` + ``tokenizer/``, loaded with ``local_files_only=True``;
-    nothing is downloaded) or an already built pipeline (any object with ``unet``, ``vae``,
+    nothing is downloaded; the text encoder needs ``transformers`` and is skipped when
+    ``xi_b``/``xi_d`` are given) or an already built pipeline (any object with ``unet``, ``vae``,
     ``scheduler`` and optionally ``text_encoder``/``tokenizer``, e.g. a
     ``StableDiffusionInpaintPipeline``).
 
@@ -171,7 +172,7 @@ class DiffusersBackend(CompletionBackend):
                  resolution: tuple[int, int] | None = None, ev_min: float = EV_MIN,
                  device=None):
         if isinstance(source, (str, Path)):
-            comps = self._load_components(Path(source))
+            comps = self._load_components(Path(source), text=xi_b is None)
         else:
             missing = [k for k in ("unet", "vae", "scheduler") if getattr(source, k, None) is None]
             if missing:
@@ -229,7 +230,7 @@ class DiffusersBackend(CompletionBackend):
         return cls(p, **kwargs)
 
     @staticmethod
-    def _load_components(path: Path) -> dict:
+    def _load_components(path: Path, text: bool = True) -> dict:
         diffusers = _import_diffusers()
         if not path.is_dir():
             raise FileNotFoundError(f"DiffusersBackend: model folder not found: {path}")
@@ -246,7 +247,7 @@ class DiffusersBackend(CompletionBackend):
                                                                         **mkw),
                  "vae": diffusers.AutoencoderKL.from_pretrained(path, subfolder="vae", **mkw),
                  "scheduler": sched_cls.from_pretrained(path, subfolder="scheduler", **kw)}
-        if (path / "text_encoder").is_dir() and (path / "tokenizer").is_dir():
+        if text and (path / "text_encoder").is_dir() and (path / "tokenizer").is_dir():
             index = path / "model_index.json"
             names = json.loads(index.read_text()) if index.is_file() else {}
             try:
