@@ -284,7 +284,7 @@ def _add_estimate_light(sub) -> None:
                    default="net", help="completion backend (default net: the shipped weights)")
     p.add_argument("--weights", metavar="PATH", help="completion-net checkpoint (backend net)")
     p.add_argument("--net-resolution", type=int, nargs=2, metavar=("H", "W"),
-                   help="network input size (default: the trace size)")
+                   help="network input size (default: the size the weights were trained at)")
     p.add_argument("--diffusers-dir", metavar="DIR",
                    help="local diffusers inpainting model (backend diffusers); prompt "
                         "embeddings come from its text encoder or DIR/ev_embeddings.pt "
@@ -324,10 +324,30 @@ def _cmd_estimate_light(args) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------- train-completion
+
+def _add_train_completion(sub) -> None:
+    from .lighting import train_completion
+    p = sub.add_parser("train-completion", help="train the panorama completion network",
+                       description="Generate the training set (Poly Haven maps minus the "
+                                   "held-out ones, sunsky skies, path-traced rooms, traced "
+                                   "surfel masks) and train the EV-conditioned completion "
+                                   "network in two steps within --minutes.")
+    train_completion.add_arguments(p)
+    p.set_defaults(func=_cmd_train_completion)
+
+
+def _cmd_train_completion(args) -> int:
+    from . import set_variant
+    set_variant("llvm_ad_rgb")
+    from .lighting import train_completion
+    return train_completion.run_from_args(args)
+
+
 # ----------------------------------------------------------------------------- entry point
 
 _SUBCOMMANDS = (_add_make_dataset, _add_demo, _add_reconstruct, _add_render, _add_decompose,
-                _add_relight, _add_estimate_light)
+                _add_relight, _add_estimate_light, _add_train_completion)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -348,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(e.code or 0)
     try:
         return int(args.func(args) or 0)
-    except (FileNotFoundError, ValueError) as e:
+    except (FileNotFoundError, ValueError, ImportError) as e:
         print(f"comgs {args.command}: error: {e}", file=sys.stderr)
         return 2
 

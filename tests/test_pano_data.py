@@ -166,3 +166,19 @@ def test_tiny_training_writes_loadable_weights(tiny_training):
                                            np.zeros((16, 32, 3), np.float32),
                                            np.zeros((16, 32), np.float32))
     assert all(np.isfinite(v).all() for v in out.values())
+
+
+def test_train_completion_cli(tmp_path, capsys):
+    from comgs_dr import cli
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    write_exr(maps / "a.exr", np.full((16, 32, 3), 0.5, np.float32), "equirect")
+    out = tmp_path / "w.pt"
+    argv = ["train-completion", "--out", str(out), "--data-dir", str(tmp_path / "d"), "--maps",
+            str(maps), "--minutes", "0.02", "--max-steps", "2", "--skies", "1", "--rooms", "1",
+            "--masks", "2", "--room-spp", "1", "--res", "16", "--channels", "8", "--batch", "2",
+            "--quiet"]
+    assert cli.main(argv) == 0
+    assert C.load_weights(out).config.train_resolution == (16, 32)
+    assert cli.main(argv + ["--res", "24"]) == 2                      # not a multiple of 16
+    assert "multiple of 16" in capsys.readouterr().err

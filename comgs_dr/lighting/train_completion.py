@@ -279,7 +279,7 @@ def add_arguments(ap) -> None:
 
 def run_from_args(args) -> int:
     if args.res < 16 or args.res % 16:
-        raise SystemExit(f"train-completion: --res must be a positive multiple of 16, got {args.res}")
+        raise ValueError(f"--res must be a positive multiple of 16, got {args.res}")
     cfg = TrainCompletionConfig(
         out=args.out, data_dir=args.data_dir, maps_dir=args.maps, held_out=tuple(args.held_out),
         height=args.res, width=2 * args.res, n_sky=args.skies, n_rooms=args.rooms,
