@@ -129,6 +129,7 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--init", help="auto | hull | points | random | PATH.ply")
     p.add_argument("--time-limit", type=float, help="stop (and checkpoint) after this many seconds")
     p.add_argument("--lambda-d2n", type=float, help="depth-normal prior weight (default: config's)")
+    p.add_argument("--d2n-from", type=int, help="iteration the depth-normal prior starts at")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--variant", default="auto")
     p.add_argument("--quiet", action="store_true")
@@ -152,6 +153,8 @@ def _cmd_reconstruct(args) -> int:
         kw["time_limit_s"] = args.time_limit
     if args.lambda_d2n is not None:
         kw["lambda_d2n"] = args.lambda_d2n
+    if args.d2n_from is not None:
+        kw["d2n_from"] = args.d2n_from
     write_run_info(args.out, args.data, args.preset, args.resolution_scale, args.white_background)
     s = train_radiance(data, args.out, RadianceConfig(**kw), progress=not args.quiet)
     print(f"step 1 done: {s['iterations']} iterations in {s['train_seconds']:.0f} s, {s['surfels']} surfels, "
