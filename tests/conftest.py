@@ -10,6 +10,17 @@ def variant():
     return comgs_dr.set_variant("llvm_ad_rgb")
 
 
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Tiny torch models: one intra-op thread (spinning workers made them ~4x slower on a busy
+    2-core machine); restored after the module."""
+    import torch
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)

@@ -12,14 +12,7 @@ H, W = 32, 64
 TINY = dict(base_channels=8, levels=2, channel_mults=(1, 2, 2), embed_dim=16, groups=4)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_torch_thread():
-    """Tiny models: one intra-op thread (spinning workers make them ~4x slower on a busy
-    2-core machine); restored afterwards."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _inputs(seed=0, frac=0.6):

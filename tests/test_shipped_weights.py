@@ -5,15 +5,15 @@ import json
 
 import numpy as np
 import pytest
-import torch
-
 from comgs_dr.lighting import backends, completion as C, pano_data as P
 from comgs_dr.lighting.hdr import expose, fuse_brackets
 
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
 @pytest.fixture(scope="module")
 def backend():
-    torch.set_num_threads(1)
     return backends.load_network_backend()
 
 
