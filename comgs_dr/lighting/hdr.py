@@ -46,10 +46,6 @@ from scipy.sparse.csgraph import connected_components
 
 from .envmap import LUMA, equirect_uv_to_dir_np
 
-try:  # torch is optional: only needed for tensor inputs
-    import torch
-except ImportError:  # pragma: no cover
-    torch = None
 
 __all__ = ["srgb_encode", "srgb_decode", "expose", "unexpose", "fuse_brackets",
            "DEFAULT_EVS", "saturation_limit", "pixel_solid_angles", "equirect_directions",
@@ -63,7 +59,11 @@ DEFAULT_EVS = (0.0, -2.5, -5.0)
 # Exposure model (NumPy or torch)
 
 def _is_torch(x) -> bool:
-    return torch is not None and isinstance(x, torch.Tensor)
+    """A torch tensor? (torch is optional and imported only when a tensor comes in.)"""
+    if type(x).__module__.split(".")[0] != "torch":
+        return False
+    import torch
+    return isinstance(x, torch.Tensor)
 
 
 def _prep(x):
@@ -75,7 +75,10 @@ def _prep(x):
 
 
 def _where(c, a, b):
-    return torch.where(c, a, b) if _is_torch(a) else np.where(c, a, b)
+    if _is_torch(a):
+        import torch
+        return torch.where(c, a, b)
+    return np.where(c, a, b)
 
 
 def srgb_encode(x):
