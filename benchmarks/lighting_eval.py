@@ -10,7 +10,8 @@ res × 2·res) and each of ``--masks`` masks (``lighting.pano_data.mask_bank``: 
 traced from procedural surfel scenes), with a random rotation about Z:
 
 * GT = k·map, k = ``pano_data.auto_exposure`` (the "capture" exposure);
-* input = ``hdr.expose(GT, 0)`` · alpha (holes 0), the mask's normals, the map's label
+* input = ``hdr.expose(GT, 0)`` where alpha > 0 (un-premultiplied, as ``trace_panorama``
+  returns it; holes 0) with alpha as the mask, the mask's normals, the map's label
   (``--labels JSON``: {file stem: "indoor" | "outdoor"}, default "unknown");
 * each method's ``complete(...)`` at EV (0, −2.5, −5), fused with ``hdr.fuse_brackets``.
 
@@ -147,7 +148,8 @@ def evaluate(args, progress=print) -> dict:
             gt = gt * pano.auto_exposure(gt)
             alpha = np.clip(np.asarray(mk["alpha"], np.float64), 0.0, 1.0)       # [H, W]
             normal = np.asarray(mk["normal"], np.float32)                         # [H, W, 3]
-            rgb = (hdr.expose(gt, 0.0) * alpha[..., None]).astype(np.float32)    # [H, W, 3]
+            # un-premultiplied colour where anything is seen, as trace_panorama gives it
+            rgb = np.where(alpha[..., None] > 0, hdr.expose(gt, 0.0), 0.0).astype(np.float32)
             t1 = time.perf_counter()
             gt_r, smask = lm.render_spheres(gt, **sphere)
             t_render.append(time.perf_counter() - t1)
