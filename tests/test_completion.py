@@ -1,6 +1,7 @@
 """Tests of comgs_dr.lighting.completion: size, shapes/range, spherical padding (seam
 equivariance, polar neighbours), EV embedding, blend of observed pixels, gradcheck of the
 padding and FiLM blocks, determinism, save/load and the NumPy backend."""
+import dataclasses
 import numpy as np
 import pytest
 import torch
@@ -222,3 +223,42 @@ def test_resize_equirect_wraps():
     # left edge of the map blends with the right (u wraps), right edge with the left
     assert y[0, 0, 0, 0] == 0.75 and y[0, 0, 0, -1] == 0.25
     assert torch.equal(C.resize_equirect(x, 2, 4), x)
+
+
+def test_push_pull_prior_residual_starts_at_the_prior():
+    """prior='push_pull': the output conv is zero at init, so pred is the push-pull fill
+    re-exposed to each EV; gradients reach the residual."""
+    from comgs_dr.lighting.hdr import push_pull_fill
+    m = net(dataclasses.replace(SMALL, prior="push_pull"), seed=2)
+    g = torch.Generator().manual_seed(3)
+    rgb = torch.rand(2, 3, 16, 32, generator=g)
+    mask = (torch.rand(2, 1, 16, 32, generator=g) > 0.4).float()
+    prior = C.fill_prior(rgb, mask)
+    ref = push_pull_fill(rgb[0].permute(1, 2, 0).numpy(), mask[0, 0].numpy())
+    np.testing.assert_allclose(prior[0].permute(1, 2, 0).numpy(), np.clip(ref, 0, 1), atol=1e-6)
+    ev = torch.tensor([0.0, -2.5])
+    out = m(rgb, torch.zeros_like(rgb), mask, ev, 1)
+    base = C.expose_ldr(prior, ev).clamp(1e-3, 1 - 1e-3)
+    torch.testing.assert_close(out.pred, base, atol=1e-6, rtol=0)
+    out.pred.sum().backward()
+    assert m.out_conv.conv.weight.grad.abs().sum() > 0
+    # nothing observed: a mid-grey prior, finite output
+    empty = m(rgb, torch.zeros_like(rgb), torch.zeros_like(mask), 0.0, 2)
+    assert torch.isfinite(empty.pred).all()
+    assert torch.allclose(C.fill_prior(rgb, torch.zeros_like(mask)), torch.tensor(0.5))
+
+
+def test_v1_checkpoints_still_load(tmp_path):
+    m = net(SMALL, seed=4)
+    path = C.save_weights(m, tmp_path / "v1.pt")
+    ck = torch.load(path, weights_only=True)
+    cfg = {k: v for k, v in ck["config"].items() if k not in ("prior", "train_resolution")}
+    ck["config"] = {**cfg, "version": "comgs-completion-v1"}
+    ck["version"] = "comgs-completion-v1"
+    torch.save(ck, path)
+    loaded = C.load_weights(path)
+    assert loaded.config.prior == "none" and loaded.config.version == "comgs-completion-v1"
+    ck["version"] = "comgs-completion-v0"
+    torch.save(ck, path)
+    with pytest.raises(C.WeightsError, match="not supported"):
+        C.load_weights(path)

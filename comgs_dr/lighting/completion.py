@@ -40,11 +40,12 @@ import torch.nn.functional as F
 
 __all__ = ["FORMAT_VERSION", "DEFAULT_EVS", "EV_MIN", "LABELS", "SATURATION", "CompletionConfig",
            "SphericalPad2d", "SConv2d", "FiLM", "ResBlock", "GlobalContext", "EVEmbedding",
-           "CompletionNet", "CompletionOutput", "blend_observed", "expose_ldr",
+           "CompletionNet", "CompletionOutput", "blend_observed", "expose_ldr", "fill_prior",
            "resize_equirect", "save_weights", "load_weights", "WeightsError",
            "count_parameters", "CompletionBackend", "NetworkBackend"]
 
-FORMAT_VERSION, _FORMAT = "comgs-completion-v1", "comgs_dr.lighting.completion"
+FORMAT_VERSION, _FORMAT = "comgs-completion-v2", "comgs_dr.lighting.completion"
+SUPPORTED_VERSIONS = ("comgs-completion-v1", FORMAT_VERSION)   # v1: no prior, train_resolution
 DEFAULT_EVS, EV_MIN = (0.0, -2.5, -5.0), -5.0
 LABELS = {"outdoor": 0, "indoor": 1, "unknown": 2}
 SATURATION = 0.999   # EV-0 LDR max channel at/above which radiance is unknown (clipped)
@@ -64,17 +65,20 @@ class CompletionConfig:
     padding: str = "polar"          # vertical padding: "polar" or "replicate"
     latitude_channels: bool = True
     train_resolution: tuple = (64, 128)      # (H, W) the weights were trained at; inference size
+    prior: str = "none"             # "push_pull": residual on the push-pull fill (see fill_prior)
     version: str = FORMAT_VERSION
 
     def __post_init__(self):
         object.__setattr__(self, "channel_mults", tuple(int(m) for m in self.channel_mults))
         object.__setattr__(self, "train_resolution", tuple(int(m) for m in self.train_resolution))
         if (self.levels < 1 or len(self.channel_mults) != self.levels + 1 or self.ev_min >= 0
-                or self.padding not in ("polar", "replicate") or min(
+                or self.padding not in ("polar", "replicate") or self.prior not in (
+                    "none", "push_pull") or min(
                     self.base_channels, self.embed_dim, self.groups, *self.channel_mults) < 1):
             raise ValueError(f"CompletionConfig: invalid values (need levels >= 1, "
                              f"len(channel_mults) == levels + 1, ev_min < 0, padding "
-                             f"'polar'/'replicate', positive sizes): {self}")
+                             f"'polar'/'replicate', prior 'none'/'push_pull', positive "
+                             f"sizes): {self}")
 
     @property
     def channels(self) -> list[int]:
@@ -257,7 +261,7 @@ class CompletionNet(nn.Module):
         self.ev_embed = EVEmbedding(e, c.ev_min)
         self.label_embed = nn.Embedding(c.n_labels, e)
         self.cond_mlp = nn.Sequential(nn.Linear(e, e), nn.SiLU(), nn.Linear(e, e))
-        cin = c.in_channels + (2 if c.latitude_channels else 0)
+        cin = c.in_channels + (2 if c.latitude_channels else 0) + (3 if c.prior != "none" else 0)
         self.stem = SConv2d(cin, ch[0], 3, vertical=v)
         self.enc = nn.ModuleList(ResBlock(ch[i], ch[i], e, g, v) for i in range(n))
         self.down = nn.ModuleList(SConv2d(ch[i], ch[i + 1], 4, 2, v) for i in range(n))
@@ -266,6 +270,8 @@ class CompletionNet(nn.Module):
         self.up = nn.ModuleList(SConv2d(ch[i + 1], ch[i], 3, vertical=v) for i in range(n))
         self.dec = nn.ModuleList(ResBlock(2 * ch[i], ch[i], e, g, v) for i in range(n))
         self.out_norm, self.out_conv = _gn(ch[0], g), SConv2d(ch[0], c.out_channels, 3, vertical=v)
+        if c.prior != "none":   # residual on the prior: exactly the prior at initialisation
+            nn.init.zeros_(self.out_conv.conv.weight), nn.init.zeros_(self.out_conv.conv.bias)
 
     def condition(self, ev, label, batch: int = 1) -> torch.Tensor:
         """Condition vector [B, D] = MLP(ξ_ev + label embedding)."""
@@ -284,8 +290,9 @@ class CompletionNet(nn.Module):
             raise ValueError(f"CompletionNet: input {h}x{w} must be a multiple of {mh}x{mw} "
                              f"(use NetworkBackend or resize_equirect)")
 
-    def forward(self, rgb, normal, mask, ev=0.0, label=2) -> CompletionOutput:
-        """rgb [B,3,H,W] EV-0 LDR, normal [B,3,H,W], mask [B,1,H,W] or [B,H,W] (1 = observed)."""
+    def forward(self, rgb, normal, mask, ev=0.0, label=2, prior=None) -> CompletionOutput:
+        """rgb [B,3,H,W] EV-0 LDR, normal [B,3,H,W], mask [B,1,H,W] or [B,H,W] (1 = observed);
+        ``prior`` [B,3,H,W]: the EV-0 prior fill (``fill_prior``; computed when None)."""
         mask = mask[:, None] if mask.dim() == 3 else mask
         b, _, h, w = rgb.shape
         if normal.shape != rgb.shape or mask.shape != (b, 1, h, w) or rgb.shape[1] != 3:
@@ -295,6 +302,9 @@ class CompletionNet(nn.Module):
         rgb, normal, m = _sanitize(rgb, normal, mask)
         cond = self.condition(ev, label, b)
         x = [rgb, normal, m]
+        if self.config.prior != "none":
+            prior = fill_prior(rgb, m) if prior is None else prior.to(rgb.dtype)
+            x.append(prior)
         if self.config.latitude_channels:
             th = math.pi * (torch.arange(h, dtype=rgb.dtype, device=rgb.device) + 0.5) / h
             lat = torch.stack([torch.cos(th), torch.sin(th)])[None, :, :, None]
@@ -309,14 +319,30 @@ class CompletionNet(nn.Module):
         for i in reversed(range(self.config.levels)):
             x = self.up[i](F.interpolate(x, scale_factor=2.0, mode="nearest"))
             x = self.dec[i](torch.cat([x, skips[i]], 1), cond)
-        pred = torch.sigmoid(self.out_conv(F.silu(self.out_norm(x))))
         ev_t = _batch_vec(ev, b, rgb.dtype, rgb.device)
+        logits = self.out_conv(F.silu(self.out_norm(x)))
+        if self.config.prior != "none":   # the prior re-exposed to ev, in logit space
+            base = expose_ldr(prior, ev_t).clamp(1e-3, 1 - 1e-3)
+            logits = logits + torch.log(base / (1 - base))
+        pred = torch.sigmoid(logits)
         return CompletionOutput(blend_observed(rgb, m, pred, ev_t), pred)
 
     @torch.no_grad()
     def complete(self, rgb, normal, mask, evs=DEFAULT_EVS, label=2) -> dict:
         """{float(ev): completed [B, 3, H, W]} (deterministic; train/eval modes agree)."""
         return {float(e): self(rgb, normal, mask, float(e), label).completed for e in evs}
+
+
+def fill_prior(rgb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Push-pull fill (``hdr.push_pull_fill``) of each EV-0 panorama [B,3,H,W] with mask
+    [B,1,H,W], as a constant input (no gradient); mid-grey where nothing is observed."""
+    from .hdr import push_pull_fill
+    out = []
+    for r, m in zip(rgb.detach().cpu().numpy(), mask.detach().cpu().numpy()):
+        mm = m[0]
+        out.append(push_pull_fill(r.transpose(1, 2, 0), mm).transpose(2, 0, 1)
+                   if (mm > 0.5).any() else np.full_like(r, 0.5))
+    return torch.as_tensor(np.stack(out), dtype=rgb.dtype, device=rgb.device).clamp(0, 1)
 
 
 def count_parameters(model: nn.Module, trainable_only: bool = True) -> int:
@@ -353,9 +379,9 @@ def load_weights(path, config: CompletionConfig | None = None,
         raise WeightsError(f"{path}: not a readable completion checkpoint ({exc})") from exc
     if not isinstance(ckpt, dict) or ckpt.get("format") != _FORMAT:
         raise WeightsError(f"{path}: not a completion checkpoint (format {_FORMAT!r} expected)")
-    if ckpt.get("version") != FORMAT_VERSION:
+    if ckpt.get("version") not in SUPPORTED_VERSIONS:
         raise WeightsError(f"{path}: checkpoint version {ckpt.get('version')!r} is not "
-                           f"supported (expected {FORMAT_VERSION!r})")
+                           f"supported (expected one of {SUPPORTED_VERSIONS})")
     try:
         stored = CompletionConfig.from_dict(dict(ckpt["config"]))
     except (KeyError, TypeError, ValueError) as exc:
@@ -446,9 +472,10 @@ class NetworkBackend(CompletionBackend):
         r, n, m = _sanitize(t(rgb), t(normal), t(mask[..., None]))
         hn, wn = self.net_size(h, w)
         rr, nn_, mm = (resize_equirect(a, hn, wn) for a in (r, n, m))
+        prior = fill_prior(rr, mm) if self.model.config.prior != "none" else None
         out = {}
         for e in evs:
-            pred = resize_equirect(self.model(rr, nn_, mm, float(e), label).pred, h, w)
+            pred = resize_equirect(self.model(rr, nn_, mm, float(e), label, prior).pred, h, w)
             ev = torch.full((1,), float(e), dtype=dt, device=dev)
             img = blend_observed(r, m, pred.clamp(0, 1), ev)
             out[float(e)] = img[0].permute(1, 2, 0).cpu().numpy().astype(np.float32)

@@ -64,6 +64,7 @@ class TrainCompletionConfig:
     warmup: int = 200
     aug_ev: float = 1.5
     base_channels: int = 24
+    prior: str = "push_pull"                 # residual on the push-pull fill ("none": plain)
     seed: int = 0
     threads: int = 2
     source_probs: tuple = (0.3, 0.35, 0.35)   # poly haven, sky, room
@@ -194,7 +195,7 @@ def train(cfg: TrainCompletionConfig, progress: bool = True, command: str | None
     t_data = time.perf_counter()
     data = build_data(cfg, progress)
     t_data = time.perf_counter() - t_data
-    net_cfg = C.CompletionConfig(base_channels=cfg.base_channels,
+    net_cfg = C.CompletionConfig(base_channels=cfg.base_channels, prior=cfg.prior,
                                  train_resolution=(cfg.height, cfg.width), **cfg.net)
     model = C.CompletionNet(net_cfg)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999), weight_decay=0.01)
@@ -272,6 +273,8 @@ def add_arguments(ap) -> None:
     ap.add_argument("--batch", type=int, default=d.batch)
     ap.add_argument("--lr", type=float, default=d.lr)
     ap.add_argument("--channels", type=int, default=d.base_channels)
+    ap.add_argument("--prior", choices=("push_pull", "none"), default=d.prior,
+                    help="predict a residual on the push-pull fill (default) or from scratch")
     ap.add_argument("--seed", type=int, default=d.seed)
     ap.add_argument("--threads", type=int, default=d.threads)
     ap.add_argument("--quiet", action="store_true")
@@ -285,6 +288,7 @@ def run_from_args(args) -> int:
         height=args.res, width=2 * args.res, n_sky=args.skies, n_rooms=args.rooms,
         n_masks=args.masks, room_spp=args.room_spp, minutes=args.minutes,
         max_steps=args.max_steps, batch=args.batch, lr=args.lr, base_channels=args.channels,
+        prior=args.prior,
         seed=args.seed, threads=args.threads)
     info = train(cfg, progress=not args.quiet, command=" ".join(sys.argv))
     last = info["history"][-1] if info["history"] else {}
