@@ -2,6 +2,7 @@
 equivariance, polar neighbours), EV embedding, blend of observed pixels, gradcheck of the
 padding and FiLM blocks, determinism, save/load and the NumPy backend."""
 import dataclasses
+
 import numpy as np
 import pytest
 import torch
