@@ -21,9 +21,10 @@ def test_shipped_weights_load_with_their_record(backend):
     assert backends.DEFAULT_WEIGHTS.is_file()
     assert backends.DEFAULT_WEIGHTS.stat().st_size < 16 * 2 ** 20
     cfg = backend.model.config
-    assert cfg.version == C.FORMAT_VERSION and backend.resolution == cfg.train_resolution
+    assert cfg.version in C.SUPPORTED_VERSIONS and backend.resolution == cfg.train_resolution
     rec = json.loads(backends.DEFAULT_WEIGHTS.with_suffix(".json").read_text())
-    assert "train-completion" in rec["command"] and rec["steps"] > 100
+    assert "train_completion" in rec["command"] or "train-completion" in rec["command"]
+    assert rec["steps"] > 100 and rec["config"].get("prior", "none") == cfg.prior
     assert not set(rec["data"]["held_out"]) & set(rec["data"]["poly_haven"])
 
 
