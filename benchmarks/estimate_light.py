@@ -28,7 +28,7 @@ def main(argv=None):
     from comgs_dr.cameras import gbuffer_scene
     from comgs_dr.lighting import backends
     from comgs_dr.lighting.estimate import EstimateConfig, estimate_light
-    from comgs_dr.lighting.pano_data import _random_surfel_scene
+    from comgs_dr.lighting.pano_data import random_surfel_scene
     methods = {"net": backends.load_network_backend(), "push_pull": backends.FillBackend("push_pull")}
     cfg = EstimateConfig(width=a.width, height=a.width // 2, exclude_radius=0.1)
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, python "
@@ -40,7 +40,7 @@ def main(argv=None):
     for n in a.surfels:
         rng = np.random.default_rng(a.seed)
         while True:   # a room (the generator alternates rooms and yards)
-            params, (lo, hi) = _random_surfel_scene(rng, n)
+            params, (lo, hi) = random_surfel_scene(rng, n)
             if lo[2] > 0.25:
                 break
         scene = gbuffer_scene(params, [], targets="weight")

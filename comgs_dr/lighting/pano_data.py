@@ -31,7 +31,7 @@ from .hdr import pixel_solid_angles as _row_solid_angles
 log = logging.getLogger(__name__)
 
 __all__ = ["LUMA", "auto_exposure", "pixel_solid_angles", "load_map", "sunsky_panorama",
-           "room_panorama", "mask_bank", "MaskSample", "rotate_u"]
+           "room_panorama", "mask_bank", "MaskSample", "rotate_u", "random_surfel_scene"]
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 KEY = 0.18
@@ -207,7 +207,7 @@ def _furniture(rng, extent, n):
     return parts
 
 
-def _random_surfel_scene(rng, n_surfels: int):
+def random_surfel_scene(rng, n_surfels: int):
     """(surfel params, sampling box for the trace point) of a procedural indoor/outdoor scene."""
     import trimesh
     from ..surfels.from_mesh import from_mesh
@@ -254,7 +254,7 @@ def mask_bank(n: int, h: int = 64, w: int = 128, seed: int = 0, n_surfels: int =
         from tqdm import tqdm
         it = tqdm(it, desc="masks", unit="scene")
     for _ in it:
-        params, (lo, hi) = _random_surfel_scene(rng, n_surfels)
+        params, (lo, hi) = random_surfel_scene(rng, n_surfels)
         means = np.asarray(dr.detach(params.means), np.float64).T                     # [N, 3]
         full = gbuffer_scene(params, [], targets="weight")
         for _ in range(points_per_scene):
