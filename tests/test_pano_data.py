@@ -13,12 +13,12 @@ from comgs_dr.lighting.hdr import area_resize_equirect
 
 
 def _power(img):
-    return (img * P.pixel_solid_angles(*img.shape[:2])[..., None]).sum((0, 1))
+    return (img * P.solid_angle_image(*img.shape[:2])[..., None]).sum((0, 1))
 
 
 def test_solid_angles_sum_to_4pi():
-    assert P.pixel_solid_angles(16, 32).shape == (16, 32)
-    assert abs(P.pixel_solid_angles(16, 32).sum() - 4 * np.pi) < 1e-9
+    assert P.solid_angle_image(16, 32).shape == (16, 32)
+    assert abs(P.solid_angle_image(16, 32).sum() - 4 * np.pi) < 1e-9
 
 
 def test_area_resize_preserves_power_of_a_tiny_sun():
@@ -98,7 +98,7 @@ def test_mask_bank_masks_and_normals():
         a, n = m["alpha"], m["normal"]
         assert a.shape == (16, 32) and n.shape == (16, 32, 3)
         assert a.min() >= 0 and a.max() <= 1 + 1e-6
-        sa = P.pixel_solid_angles(16, 32)
+        sa = P.solid_angle_image(16, 32)
         assert abs((a * sa).sum() / sa.sum() - m["coverage"]) < 1e-3
         cov = a > 0.5
         np.testing.assert_allclose(np.linalg.norm(n[cov], axis=-1), 1.0, atol=1e-3)

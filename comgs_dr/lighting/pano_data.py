@@ -30,14 +30,14 @@ from .hdr import pixel_solid_angles as _row_solid_angles
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LUMA", "auto_exposure", "pixel_solid_angles", "load_map", "sunsky_panorama",
+__all__ = ["LUMA", "auto_exposure", "solid_angle_image", "load_map", "sunsky_panorama",
            "room_panorama", "mask_bank", "MaskSample", "rotate_u", "random_surfel_scene"]
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 KEY = 0.18
 
 
-def pixel_solid_angles(h: int, w: int) -> np.ndarray:
+def solid_angle_image(h: int, w: int) -> np.ndarray:
     """[h, w] solid angle of every equirect pixel (sums to 4π)."""
     return np.broadcast_to(_row_solid_angles(h, w), (h, w))
 
@@ -49,7 +49,7 @@ def auto_exposure(hdr: np.ndarray, key: float = KEY) -> float:
         raise ValueError(f"auto_exposure: need an equirect [H, W, 3] map, got {hdr.shape}")
     if not np.all(np.isfinite(hdr)):
         raise ValueError("auto_exposure: the map holds NaN/Inf values")
-    w = pixel_solid_angles(*hdr.shape[:2])                                   # [H, W]
+    w = solid_angle_image(*hdr.shape[:2])                                   # [H, W]
     lum = np.maximum(hdr @ LUMA, 0.0)
     if lum.max() <= 0:
         raise ValueError("auto_exposure: the map is black")
@@ -83,7 +83,7 @@ def _splat_direction(img: np.ndarray, d: np.ndarray, power: np.ndarray) -> None:
     x, y = uv[0] * W - 0.5, uv[1] * H - 0.5
     x0, y0 = int(np.floor(x)), int(np.floor(y))
     fx, fy = x - x0, y - y0
-    sa = pixel_solid_angles(H, W)
+    sa = solid_angle_image(H, W)
     for dy, wy in ((0, 1 - fy), (1, fy)):
         yy = min(max(y0 + dy, 0), H - 1)
         for dx, wx in ((0, 1 - fx), (1, fx)):
@@ -139,7 +139,7 @@ def sunsky_panorama(rng: np.random.Generator, h: int = 64, w: int = 128) -> np.n
     half = np.radians(0.5358 / 2)
     sun_power = _eval_emitter(sun, sd[None])[0] * 2 * np.pi * (1 - np.cos(half))   # [3]
     sun_power *= rng.choice([0.0, 1.0], p=[0.15, 0.85])                              # overcast
-    sa = pixel_solid_angles(h, w)
+    sa = solid_angle_image(h, w)
     up = d[:, 2].reshape(h, w)
     e_sky = (img * (sa * np.maximum(up, 0))[..., None]).sum((0, 1))                  # [3]
     e_ground = e_sky + sun_power * max(sd[2], 0.0)                                     # [3]

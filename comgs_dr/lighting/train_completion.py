@@ -177,7 +177,7 @@ class Sampler:
 
 def completion_loss(completed, target, h: int, w: int) -> torch.Tensor:
     """Solid-angle-weighted L1, normalised per sample by (mean target + 0.02)."""
-    sa = torch.from_numpy(np.ascontiguousarray(P.pixel_solid_angles(h, w), dtype=np.float32))
+    sa = torch.from_numpy(np.ascontiguousarray(P.solid_angle_image(h, w), dtype=np.float32))
     sa = (sa / sa.mean())[None, None]
     err = ((completed - target).abs() * sa).mean((1, 2, 3))
     scale = (target * sa).mean((1, 2, 3)) + 0.02
