@@ -1,10 +1,12 @@
 """Scene preset of reconstruction step 1 on a small procedural scene (no masks, no download).
 
 Generates a ground slab with four objects under the procedural sky (path traced, NeRF-synthetic
-layout), fits it with `comgs reconstruct --scene` (random init, no mask loss) and prints the
-test PSNR/SSIM from `comgs render`.
+layout) with an SfM-like sparse cloud (``points3d.ply``: surface points seen by >= 2 training
+views, coloured, jittered; what COLMAP gives a real capture), fits it with
+`comgs reconstruct --scene` (init from those points, no mask loss, 2DGS density control) and
+prints the test PSNR/SSIM from `comgs render`. ``--points 0`` drops the cloud (random init).
 
-    python benchmarks/recon_scene.py [--res 96] [--views 60] [--iterations 1500] [--out DIR]
+    python benchmarks/recon_scene.py [--res 96] [--views 60] [--iterations 1500] [--points 20000]
 """
 from __future__ import annotations
 
@@ -20,6 +22,8 @@ def main():
     ap.add_argument("--res", type=int, default=96)
     ap.add_argument("--views", type=int, default=60)
     ap.add_argument("--iterations", type=int, default=1500)
+    ap.add_argument("--points", type=int, default=20000, help="SfM-like points (0: none)")
+    ap.add_argument("--init", default="auto", help="comgs reconstruct --init")
     ap.add_argument("--out", type=Path, default=Path(tempfile.gettempdir()) / "comgs_scene_bench")
     a = ap.parse_args()
     import comgs_dr
@@ -28,16 +32,21 @@ def main():
     from comgs_dr.demo import procedural_scene, procedural_sky
     from comgs_dr.eval.synthetic import ObjectDatasetConfig, make_object_dataset
     a.out.mkdir(parents=True, exist_ok=True)
+    if (a.out / "dataset" / "transforms_train.json").exists() and \
+            (a.out / "dataset" / "points3d.ply").exists() != (a.points > 0):
+        ap.error(f"{a.out}/dataset was made with{'out' if a.points else ''} points; use another --out")
     ds = a.out / "dataset"
     if not (ds / "transforms_train.json").exists():
         make_object_dataset(ObjectDatasetConfig(
             mesh=procedural_scene(a.out / "scene.ply"), envmap=procedural_sky(a.out / "sky.exr"), out_dir=ds,
             n_train=a.views, n_test=12, resolution=a.res, spp=32, spp_aov=4, relight_envmaps=(),
-            up_axis="z", texture=None, base_color=(0.55, 0.5, 0.45), train_elevation_deg=(15.0, 75.0)),
+            up_axis="z", texture=None, base_color=(0.55, 0.5, 0.45), train_elevation_deg=(15.0, 75.0),
+            sfm_points=a.points),
             progress=False)
     run = a.out / "run"
     t0 = time.perf_counter()
-    cli.main(["reconstruct", str(ds), "--out", str(run), "--scene", "--iterations", str(a.iterations), "--quiet"])
+    cli.main(["reconstruct", str(ds), "--out", str(run), "--scene", "--iterations", str(a.iterations),
+              "--init", a.init, "--quiet"])
     t = time.perf_counter() - t0
     cli.main(["render", str(run), "--views", "test", "--quiet"])
     m = json.loads((run / "metrics_test.json").read_text())

@@ -117,6 +117,43 @@ def test_completion_loss_zero_at_target_and_normalised():
     assert l_dark > 0.1 * l_bright
 
 
+def test_completion_loss_lowfreq_terms_see_colour_casts_not_zero_mean_noise():
+    from comgs_dr.lighting.train_completion import completion_loss
+    t = torch.rand(2, 3, 16, 32) + 0.5
+    checker = ((torch.arange(16)[:, None] + torch.arange(32)[None]) % 2 * 2 - 1).float()  # ±1
+    noise, cast = t + 0.1 * checker, t + 0.1
+    base_noise, base_cast = completion_loss(noise, t, 16, 32), completion_loss(cast, t, 16, 32)
+    # the per-pixel L1 cannot tell a ±0.1 checker from a +0.1 cast ...
+    assert abs(base_noise.item() - base_cast.item()) < 0.05 * base_cast.item()
+    # ... the block averages can: the cast costs (1 + 2·lowfreq)×, the checker barely more
+    lf_noise = completion_loss(noise, t, 16, 32, lowfreq=0.5, pools=(4, 8)).item()
+    lf_cast = completion_loss(cast, t, 16, 32, lowfreq=0.5, pools=(4, 8)).item()
+    assert lf_cast == pytest.approx(2.0 * base_cast.item(), rel=1e-4)
+    assert lf_noise < 1.05 * base_noise.item()
+    with pytest.raises(ValueError, match="does not divide"):
+        completion_loss(t, t, 16, 32, lowfreq=0.5, pools=(5,))
+
+
+def test_lr_schedule_follows_the_time_fraction():
+    from comgs_dr.lighting.train_completion import TrainCompletionConfig, _lr
+    cfg = TrainCompletionConfig(lr=1e-3, warmup=10)
+    assert _lr(0, 0.0, cfg) == pytest.approx(1e-4)
+    lrs = [_lr(100, f, cfg) for f in np.linspace(0, 1, 11)]
+    assert lrs[0] == pytest.approx(1e-3) and lrs[-1] == pytest.approx(5e-5)
+    assert lrs[5] == pytest.approx(0.525e-3)
+    assert all(a > b for a, b in zip(lrs, lrs[1:]))
+
+
+def test_interior_colours_are_valid_and_not_all_grey():
+    rng = np.random.default_rng(0)
+    c = np.array([P.interior_colour(rng, 0.3, 0.85) for _ in range(400)])
+    assert c.min() >= 0.02 and c.max() <= 0.95
+    sat = (c.max(1) - c.min(1)) / c.max(1)
+    assert np.mean(sat > 0.2) > 0.25 and np.mean(sat < 0.1) > 0.2   # both tinted and near-grey
+    warm = (c[:, 0] > c[:, 2]).mean()
+    assert warm > 0.6                                               # interiors lean warm
+
+
 @pytest.fixture(scope="module")
 def tiny_training(tmp_path_factory):
     from comgs_dr.lighting.train_completion import TrainCompletionConfig, build_data, train

@@ -187,6 +187,47 @@ def test_generator_dataset_roundtrip(tmp_path):
             np.testing.assert_allclose(v.mask, alpha, atol=1e-6)
 
 
+def test_generator_sfm_points_are_visible_surface_points(tmp_path):
+    """``sfm_points``: points3d.ply with surface points that >= 2 training cameras see
+    (on a convex ball: in front of >= 2 cameras' tangent planes), read by the NeRF loader."""
+    trimesh = pytest.importorskip("trimesh")
+    from comgs_dr.eval import synthetic as syn
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.7)
+    ball.export(tmp_path / "ball.ply")
+    mi.Bitmap(np.full((8, 16, 3), 0.8, np.float32)).write(str(tmp_path / "sky.exr"))
+    cfg = syn.ObjectDatasetConfig(mesh=tmp_path / "ball.ply", envmap=tmp_path / "sky.exr",
+                                  out_dir=tmp_path / "ds", n_train=4, n_test=1, resolution=16,
+                                  spp=2, spp_aov=1, max_depth=2, relight_envmaps=(),
+                                  texture=None, sfm_points=300)
+    syn.make_object_dataset(cfg, progress=False)
+    sd = D.load_dataset(tmp_path / "ds")
+    assert sd.points.shape == (300, 3) and sd.colors.shape == (300, 3)
+    assert 0.0 <= sd.colors.min() and sd.colors.max() <= 1.0 and sd.colors.mean() > 0.2
+    r = np.linalg.norm(sd.points, axis=1)
+    meta = json.loads((tmp_path / "ds" / "meta.json").read_text())
+    rw = 0.7 * meta["object"]["object_to_world"][0][0]                 # ball radius in world
+    assert np.all(np.abs(r - rw) < 0.03 * rw)
+    cams = np.array([v.camera.to_world[:3, 3] for v in sd.train])    # [4, 3]
+    facing = ((cams[None] - sd.points[:, None]) * sd.points[:, None]).sum(-1) > -0.02 * rw
+    assert facing.sum(1).min() >= 2
+    # the back of the ball (seen by no camera) gets no point although it has area
+    back = -cams.mean(0) / np.linalg.norm(cams.mean(0))
+    assert (sd.points @ back / r > 0.9).sum() == 0
+
+
+def test_bad_points_ply(nerf):
+    from comgs_dr.eval.sfm_points import write_points_ply
+    write_points_ply(nerf / "points3d.ply", np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [np.nan, 0, 0]]))
+    _raises(lambda: D.load_nerf_synthetic(nerf), nerf / "points3d.ply", "non-finite")
+    (nerf / "points3d.ply").write_bytes(b"ply\nformat ascii 1.0\nelement face 0\nend_header\n")
+    _raises(lambda: D.load_nerf_synthetic(nerf), nerf / "points3d.ply", "x/y/z")
+    pts = np.random.default_rng(0).normal(size=(10, 3))
+    write_points_ply(nerf / "points3d.ply", pts)                     # no colour: fine
+    sd = D.load_nerf_synthetic(nerf)
+    np.testing.assert_allclose(sd.points, pts, atol=1e-6)
+    assert sd.colors is None
+
+
 # ----------------------------------------------------------------------------- COLMAP
 
 def quat_wxyz(r):

@@ -70,3 +70,21 @@ def test_pca_normals_of_a_sphere_shell_point_outwards(rng):
     cos = (n * radial).sum(1)
     assert np.median(cos) > 0.99 and (cos > 0.9).mean() > 0.97
     assert np.allclose(np.linalg.norm(q, axis=1), 1, atol=1e-5)
+
+
+def test_frustum_points_lie_where_most_cameras_look(rng):
+    """Random init without masks: points of the camera-enclosing sphere that >= half of the
+    views see; none beside or behind the cameras, and an error when no region is shared."""
+    views = [types.SimpleNamespace(camera=_cam([3 * np.cos(a), 3 * np.sin(a), 1.0], [0, 0, 0], 32, 32, 40))
+             for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)]
+    pts = I.frustum_points(views, 1500, np.zeros(3), 3.3, rng)
+    assert pts.shape == (1500, 3) and pts.dtype == np.float32
+    seen = sum(I.project(v.camera, pts)[2].astype(int) for v in views)
+    assert seen.min() >= 4
+    cams = np.array([v.camera.to_world[:3, 3] for v in views])
+    near = np.linalg.norm(pts[:, None] - cams[None], axis=-1).min(1)
+    assert near.min() > 0.7                             # none right in front of a camera
+    apart = [types.SimpleNamespace(camera=_cam([3, 0, 0], [6, 0, 0], fov=10)),
+             types.SimpleNamespace(camera=_cam([-3, 0, 0], [-6, 0, 0], fov=10))]
+    with pytest.raises(ValueError, match="seen by"):
+        I.frustum_points(apart, 100, np.zeros(3), 3.3, rng, min_seen=1.0, max_tries=2)

@@ -116,6 +116,7 @@ class ObjectDatasetConfig:
     roughness: float = 0.5
     metallic: float = 0.0
     variant: str | None = None           # None: keep the active JIT variant, else set it
+    sfm_points: int = 0                  # > 0: write points3d.ply (SfM-like, ``sfm_points``)
 
     def __post_init__(self):
         for name in ("n_train", "n_test"):
@@ -287,9 +288,12 @@ def make_object_dataset(cfg: ObjectDatasetConfig, progress: bool = True) -> dict
     def seed(i: int, kind: int) -> int:  # distinct noise per render: kind 0 train, 1 test,
         return (int(cfg.seed) * 1_000_003 + 256 * i + kind) % 2**32  # 2 AOV, 3+k relight k
     renderer = sio.Renderer(spec, env_bitmaps[env_path])
+    train_images = []
     for split, spp in (("train", cfg.spp), ("test", spp_test)):
         for i, cam in enumerate(_bar(cams[split], f"{split} views", progress)):
             rgba = renderer.radiance(cam["to_world_mitsuba"], spp, seed(i, int(split == "test")))
+            if split == "train" and cfg.sfm_points > 0:
+                train_images.append(rgba)
             cam["file_path"] = f"./{split}/r_{i}"
             sio.write_png(out / f"{split}/r_{i}.png", rgba)
             if split == "test":
@@ -299,6 +303,12 @@ def make_object_dataset(cfg: ObjectDatasetConfig, progress: bool = True) -> dict
                     sio.write_exr(out / f"test/r_{i}_{key}.exr", gt[key])
                     cam[f"{key}_path"] = f"./test/r_{i}_{key}.exr"
                 cam["radiance_path"] = f"./test/r_{i}.exr"
+    if cfg.sfm_points > 0:
+        from .sfm_points import sample_visible_points, write_points_ply
+        pts, cols = sample_visible_points(renderer.scene, cams["train"], train_images, cfg.fov_deg,
+                                          int(cfg.sfm_points), np.random.default_rng(cfg.seed + 17),
+                                          radius=bound_r)
+        write_points_ply(out / "points3d.ply", pts, cols)
     for k, (name, path) in enumerate(zip(relight_names, relight)):
         renderer.set_envmap(env_bitmaps[path])
         for i, cam in enumerate(_bar(cams["test"], f"relight {name}", progress)):

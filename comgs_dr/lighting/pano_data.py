@@ -34,6 +34,7 @@ __all__ = ["LUMA", "auto_exposure", "solid_angle_image", "load_map", "sunsky_pan
            "room_panorama", "mask_bank", "MaskSample", "rotate_u", "random_surfel_scene"]
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
+GENERATOR_VERSION = 2      # bump when a generator's output changes (training-data cache key)
 KEY = 0.18
 
 
@@ -274,6 +275,17 @@ def mask_bank(n: int, h: int = 64, w: int = 128, seed: int = 0, n_surfels: int =
     return out
 
 
+def interior_colour(rng: np.random.Generator, lo: float, hi: float, warm: float = 0.6) -> np.ndarray:
+    """A diffuse albedo [3] as interiors have them: value in [lo, hi], saturation mostly low
+    (0–0.6, skewed to 0), hue warm (wood, beige, terracotta) with probability ``warm``, else any.
+    Version 1 drew near-greys only, and the net trained on it filled holes greyer than the
+    scene (measured on the held-out interior map)."""
+    import colorsys
+    hue = rng.uniform(0.02, 0.14) if rng.random() < warm else rng.uniform(0.0, 1.0)
+    sat = 0.6 * rng.beta(1.2, 2.5)
+    return np.clip(np.array(colorsys.hsv_to_rgb(hue, sat, rng.uniform(lo, hi))), 0.02, 0.95)
+
+
 def _room_dict(rng) -> tuple[dict, np.ndarray, np.ndarray]:
     """Mitsuba scene dict of a procedural room, and the box to pick the viewpoint in."""
     import mitsuba as mi
@@ -285,12 +297,11 @@ def _room_dict(rng) -> tuple[dict, np.ndarray, np.ndarray]:
                                              "reflectance": {"type": "rgb", "value": list(c)}}}
 
     def wall_col():
-        base = rng.uniform(0.3, 0.85)
-        return np.clip(base * rng.uniform(0.8, 1.15, 3), 0.02, 0.95)
+        return interior_colour(rng, 0.3, 0.85)
 
     d = {"type": "scene", "integrator": {"type": "path", "max_depth": 5}}
     d["floor"] = {"type": "rectangle", "to_world": T().scale([sx / 2, sy / 2, 1]),
-                  "bsdf": diffuse(wall_col() * rng.uniform(0.3, 0.9))}
+                  "bsdf": diffuse(interior_colour(rng, 0.1, 0.7, warm=0.8))}
     d["ceiling"] = {"type": "rectangle", "to_world": T().translate([0, 0, sz]) @ T().scale(
         [sx / 2, sy / 2, 1]), "bsdf": diffuse(wall_col())}
     walls = [((sx / 2, 0), (0, 1, 0), 90, sy), ((-sx / 2, 0), (0, 1, 0), -90, sy),

@@ -15,7 +15,9 @@ re-predicted at EV < 0) and the target, per-pixel solid-angle weights, divided p
 (mean target + 0.02) so dark EV −5 targets weigh as much as EV 0 ones (the paper uses a plain
 L1 on a v-prediction; with a direct regressor and dark targets the raw L1 ignores the lights).
 AdamW (β = 0.9, 0.999, weight decay 0.01), linear warm-up then cosine decay, gradient
-clipping 1.0. The learning rate is 1e-3, not the paper's 1e-4: we train from scratch.
+clipping 1.0. The learning rate is 1e-3, not the paper's 1e-4: we train from scratch; its
+cosine decay follows the fraction of the time budget spent. Block-averaged L1 terms
+(``lowfreq``) weigh the low frequencies that light diffuse and rough objects.
 
 Data (``pano_data``): Poly Haven maps from ``shared/data/hdri`` minus the held-out ones,
 Mitsuba ``sunsky`` skies, path-traced procedural rooms and masks traced from procedural surfel
@@ -63,6 +65,7 @@ class TrainCompletionConfig:
     lr: float = 1e-3
     warmup: int = 200
     aug_ev: float = 1.5
+    lowfreq: float = 0.5                   # weight of each low-frequency term of completion_loss
     base_channels: int = 24
     # "push_pull": a residual on the push-pull fill. Measured (benchmarks/lighting_eval.py, 2
     # held-out Poly Haven maps x 40 masks and 12 unseen procedural maps x 12 masks) it wins
@@ -84,7 +87,7 @@ def build_data(cfg: TrainCompletionConfig, progress: bool = True) -> dict:
     (0 Poly Haven, 1 sky, 2 room), masks [M, H, W], normals [M, H, W, 3]."""
     cache = Path(cfg.data_dir) / "completion_data.npz"
     key = f"{cfg.height}x{cfg.width}:{cfg.n_sky}:{cfg.n_rooms}:{cfg.n_masks}:{cfg.seed}:" \
-          f"{sorted(cfg.held_out)}:{cfg.room_spp}"
+          f"{sorted(cfg.held_out)}:{cfg.room_spp}:{P.GENERATOR_VERSION}"
     if cache.is_file():
         d = dict(np.load(cache, allow_pickle=False))
         if str(d.get("key")) == key:
@@ -175,19 +178,35 @@ class Sampler:
                 torch.tensor(lab, dtype=torch.long))
 
 
-def completion_loss(completed, target, h: int, w: int) -> torch.Tensor:
-    """Solid-angle-weighted L1, normalised per sample by (mean target + 0.02)."""
+def completion_loss(completed, target, h: int, w: int, lowfreq: float = 0.0,
+                    pools: tuple = (4, 16)) -> torch.Tensor:
+    """Solid-angle-weighted L1, normalised per sample by (mean target + 0.02).
+
+    ``lowfreq`` > 0 adds, for each factor in ``pools``, ``lowfreq`` × the same L1 between
+    solid-angle area averages over pool × pool pixel blocks: the low frequencies that light a
+    diffuse or rough object (and the colour cast of a fill) weigh more than the per-pixel term
+    alone gives them."""
     sa = torch.from_numpy(np.ascontiguousarray(P.solid_angle_image(h, w), dtype=np.float32))
-    sa = (sa / sa.mean())[None, None]
-    err = ((completed - target).abs() * sa).mean((1, 2, 3))
-    scale = (target * sa).mean((1, 2, 3)) + 0.02
-    return (err / scale).mean()
+    sa = (sa / sa.mean())[None, None]                                    # [1, 1, H, W]
+    scale = (target * sa).mean((1, 2, 3)) + 0.02                          # [B]
+    loss = ((completed - target).abs() * sa).mean((1, 2, 3)) / scale
+    for k in pools if lowfreq > 0 else ():
+        if h % k or w % k:
+            raise ValueError(f"completion_loss: pool {k} does not divide {h}x{w}")
+        wsum = torch.nn.functional.avg_pool2d(sa, k)                      # [1, 1, H/k, W/k]
+        a = torch.nn.functional.avg_pool2d(completed * sa, k) / wsum
+        b = torch.nn.functional.avg_pool2d(target * sa, k) / wsum
+        loss = loss + lowfreq * ((a - b).abs() * wsum).mean((1, 2, 3)) / scale
+    return loss.mean()
 
 
-def _lr(step: int, total: int, cfg) -> float:
+def _lr(step: int, frac: float, cfg) -> float:
+    """Linear warm-up over ``cfg.warmup`` steps, then cosine decay to 5 % over the fraction
+    ``frac`` of the time budget that has passed (a step-count estimate made early in a run
+    was measured to reach the floor at half of it)."""
     if step < cfg.warmup:
         return cfg.lr * (step + 1) / cfg.warmup
-    x = min(1.0, (step - cfg.warmup) / max(1, total - cfg.warmup))
+    x = min(1.0, max(0.0, frac))
     return cfg.lr * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * x)))
 
 
@@ -212,7 +231,6 @@ def train(cfg: TrainCompletionConfig, progress: bool = True, command: str | None
     t0 = time.perf_counter()
     hist, step, step1_end = [], 0, None
     bar = tqdm(total=int(budget), desc="train-completion", unit="s", disable=not progress)
-    est_total = cfg.max_steps
     while step < cfg.max_steps:
         el = time.perf_counter() - t0
         if el >= budget:
@@ -220,17 +238,12 @@ def train(cfg: TrainCompletionConfig, progress: bool = True, command: str | None
         mode = "zero" if el < cfg.step1_frac * budget else "ev"
         if mode == "ev" and step1_end is None:
             step1_end = step
-        # Steps fitting the budget, for the schedule, from the first 50 steps. Known flaw, kept
-        # so the shipped weights' command reproduces them: the first steps are slower (start-up,
-        # a busy machine), so the estimate is low and the rate reached its 5 % floor at about
-        # half of the run (shipped run: step ~2000 of 3971).
-        if step == 50:
-            est_total = min(cfg.max_steps, int(budget / (el / 50)))
+        frac = max(el / budget, step / cfg.max_steps)
         for g in opt.param_groups:
-            g["lr"] = _lr(step, est_total, cfg)
+            g["lr"] = _lr(step, frac, cfg)
         rgb, nor, msk, tgt, evs, lab = sampler.batch(cfg.batch, mode)
         out = model(rgb, nor, msk, evs, lab)
-        loss = completion_loss(out.completed, tgt, cfg.height, cfg.width)
+        loss = completion_loss(out.completed, tgt, cfg.height, cfg.width, cfg.lowfreq)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         gn = float(torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0))
@@ -240,7 +253,7 @@ def train(cfg: TrainCompletionConfig, progress: bool = True, command: str | None
         if step % 100 == 0 or step == 1:
             with torch.no_grad():
                 vl = [completion_loss(model(*b[:3], b[4], b[5]).completed, b[3], cfg.height,
-                                      cfg.width).item() for b in val_batches]
+                                      cfg.width).item() for b in val_batches]      # per-pixel term
             rec = {"step": step, "time_s": round(time.perf_counter() - t0, 1), "mode": mode,
                    "loss": round(loss.item(), 5), "val_ev0": round(float(np.mean(vl[:2])), 5),
                    "val_ev": round(float(np.mean(vl[2:])), 5), "lr": opt.param_groups[0]["lr"]}
@@ -280,6 +293,8 @@ def add_arguments(ap) -> None:
     ap.add_argument("--room-spp", type=int, default=d.room_spp)
     ap.add_argument("--batch", type=int, default=d.batch)
     ap.add_argument("--lr", type=float, default=d.lr)
+    ap.add_argument("--lowfreq", type=float, default=d.lowfreq,
+                    help="weight of the block-averaged (low-frequency) L1 terms")
     ap.add_argument("--channels", type=int, default=d.base_channels)
     ap.add_argument("--prior", choices=("push_pull", "none"), default=d.prior,
                     help="predict a residual on the push-pull fill, or the panorama directly "
@@ -297,6 +312,7 @@ def run_from_args(args) -> int:
         height=args.res, width=2 * args.res, n_sky=args.skies, n_rooms=args.rooms,
         n_masks=args.masks, room_spp=args.room_spp, minutes=args.minutes,
         max_steps=args.max_steps, batch=args.batch, lr=args.lr, base_channels=args.channels,
+        lowfreq=args.lowfreq,
         prior=args.prior,
         seed=args.seed, threads=args.threads)
     info = train(cfg, progress=not args.quiet, command=" ".join(sys.argv))

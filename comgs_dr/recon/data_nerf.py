@@ -28,7 +28,9 @@ def load_nerf_synthetic(root, white_background: bool = False, resolution_scale: 
 
     Without ``transforms_test.json`` every ``test_every``-th train frame (0, 8, 16, ...) is
     held out as test. RGBA images are composited onto white/black (``white_background``),
-    the alpha becoming the mask. ``max_views`` caps each split (evenly spaced).
+    the alpha becoming the mask. ``max_views`` caps each split (evenly spaced). A
+    ``points3d.ply`` beside the JSON files (x, y, z and optional red/green/blue; world frame
+    of the transforms, as 3DGS reads it) gives the initial points.
     Raises DatasetError naming the offending file.
     """
     root, k = Path(root), check_scale(resolution_scale)
@@ -49,9 +51,33 @@ def load_nerf_synthetic(root, white_background: bool = False, resolution_scale: 
     bg = (1.0, 1.0, 1.0) if white_background else (0.0, 0.0, 0.0)
     load = lambda fr: [load_view(f["name"], f["path"], f["to_world"], f["intrinsics"], k, bg)
                        for f in subsample(fr, max_views)]
+    points, colors = read_points_ply(root / "points3d.ply") if (root / "points3d.ply").is_file() \
+        else (None, None)
     return SceneData(train=load(train), test=load(test), white_background=bool(white_background),
+                     points=points, colors=colors,
                      source=f"nerf_synthetic:{root} (test: {split}, scale 1/{k})",
                      meta={"format": "nerf_synthetic", "resolution_scale": k})
+
+
+def read_points_ply(path: Path):
+    """(points [P, 3] float32, colours [P, 3] float32 in [0, 1] or None) of a point PLY.
+    DatasetError naming the file if it is unreadable, lacks x/y/z or has non-finite points."""
+    import numpy as np
+    import plyfile
+    try:
+        v = plyfile.PlyData.read(str(path))["vertex"].data
+        pts = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float32)
+    except Exception as exc:   # plyfile raises several types on bad files
+        raise DatasetError(f"{path}: not a readable point PLY with x/y/z ({exc})") from exc
+    if len(pts) < 4 or not np.isfinite(pts).all():
+        raise DatasetError(f"{path}: need >= 4 finite points, got {len(pts)} "
+                           f"({int((~np.isfinite(pts).all(1)).sum())} non-finite)")
+    names = v.dtype.names
+    colors = None
+    if all(c in names for c in ("red", "green", "blue")):
+        colors = np.stack([v["red"], v["green"], v["blue"]], 1).astype(np.float32)
+        colors /= 255.0 if v["red"].dtype == np.uint8 else max(1.0, float(colors.max()))
+    return pts, colors
 
 
 def _read_json(path: Path) -> dict:

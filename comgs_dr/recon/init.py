@@ -138,6 +138,34 @@ def project(camera, pts: np.ndarray):
     return x, y, ok
 
 
+def frustum_points(views, n: int, center, radius: float, rng: np.random.Generator,
+                   min_seen: float = 0.5, max_tries: int = 40) -> np.ndarray:
+    """Uniform points in the bounding sphere that at least ``min_seen`` of the views see
+    (the common view frustum): a random initialisation without masks or SfM points.
+
+    The bounding sphere encloses the cameras; filling all of it puts most surfels beside or
+    right in front of the cameras, where they occlude every view they are in and get pruned
+    only slowly (measured on the procedural scene: a grey blob, 14.7 dB after 750 iterations).
+    Returns [M, 3] float32 with M = n, or fewer if the frustum is tiny (at least 4, else an error).
+    """
+    keep, total = [], 0
+    for _ in range(max_tries):
+        cand = random_sphere_points(4 * n, center, radius, rng)
+        seen = np.zeros(len(cand), np.int32)
+        for v in views:
+            seen += project(v.camera, cand)[2]
+        good = cand[seen >= max(1, min_seen * len(views))]
+        keep.append(good)
+        total += len(good)
+        if total >= n:
+            break
+    pts = np.concatenate(keep)[:n]
+    if len(pts) < 4:
+        raise ValueError(f"random initialisation: no point of the bounding sphere is seen by "
+                         f"{min_seen:.0%} of the {len(views)} training views; check the camera poses")
+    return pts.astype(np.float32)
+
+
 def random_sphere_points(n: int, center, radius: float, rng: np.random.Generator) -> np.ndarray:
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)

@@ -42,7 +42,7 @@ class RadianceConfig:
     # 500 its on spot in one 15-min run (with lambda_d2n 0.05: 25.1 dB, normal MAE 13.6 deg
     # at 1200 its), so off by default.
     init_normals: bool = False
-    init_opacity: float = 0.5             # (3DGS: 0.1) measured +2.7 dB at 300 its on spot with the shell init
+    init_opacity: float = 0.5             # hull/points init (3DGS: 0.1); measured +2.7 dB at 300 its on spot with the shell init
     lambda_ssim: float = 0.2
     # Paper: 0.05 (2DGS from 7k of 30k its). Measured on spot (100 views, 128 px, 15 min,
     # uncontended 2 cores, ~3800 its): λ 0.05 from 600 peaked at 30.3 dB (1000 its) and then
@@ -80,13 +80,16 @@ class RadianceConfig:
             raise ValueError("RadianceConfig.iterations must be ≥ 1")
         if self.sh_degree not in (0, 1, 2, 3):
             raise ValueError("RadianceConfig.sh_degree must be 0..3")
-        if self.densify is None:
-            # Objects start from a dense visual-hull shell; cloning/splitting and opacity
-            # resets were measured to cost 1-2 dB test PSNR on the spot object within the
-            # CPU budget (densified 27.1/26.6 dB vs 28.3/28.6 dB at 300/400 iterations), so
-            # the object preset only prunes. Scenes use 2DGS-style density control.
-            self.densify = (dict(max_fraction=0.0, opacity_reset_interval=10 ** 9)
-                            if self.preset == "object" else {})
+        # Objects start from a dense visual-hull shell; cloning/splitting and opacity
+        # resets were measured to cost 1-2 dB test PSNR on the spot object within the
+        # CPU budget (densified 27.1/26.6 dB vs 28.3/28.6 dB at 300/400 iterations), so
+        # the object preset only prunes. Scenes use 2DGS-style density control on the
+        # 2DGS schedule scaled to the run (2DGS: densify until 15k of 30k its, reset every
+        # 3k): densify until half of the run, reset the opacities at its quarter and half.
+        preset = (dict(max_fraction=0.0, opacity_reset_interval=10 ** 9) if self.preset == "object"
+                  else dict(stop=max(1, self.iterations // 2),
+                            opacity_reset_interval=max(1, self.iterations // 4)))
+        self.densify = {**preset, **(self.densify or {})}
         if self.max_scale_frac is None:
             self.max_scale_frac = 0.01 if self.preset == "object" else 1.0
         if not 0 < self.max_scale_frac <= 1.0:
@@ -111,10 +114,11 @@ def initial_surfels(data, cfg: RadianceConfig, rng) -> tuple[SurfelParams, str]:
     if how == "points":
         if data.points is None:
             raise ValueError("init='points' but the dataset has no points (use hull or random)")
-        return I.surfels_from_points(data.points, data.colors, rng), f"dataset points ({len(data.points)})"
+        return I.surfels_from_points(data.points, data.colors, rng, opacity=cfg.init_opacity), \
+            f"dataset points ({len(data.points)})"
     if how == "random":
-        pts = I.random_sphere_points(cfg.init_points, center, radius, rng)
-        return I.surfels_from_points(pts, None, rng), f"random sphere ({len(pts)} points)"
+        pts = I.frustum_points(data.train, cfg.init_points, np.asarray(center), radius, rng)
+        return I.surfels_from_points(pts, None, rng), f"random, in the common view frustum ({len(pts)} points)"
     if str(how).endswith(".ply"):
         return load_ply(how), f"PLY {how}"
     raise ValueError(f"unknown init {cfg.init!r}: auto, hull, points, random or a .ply path")
