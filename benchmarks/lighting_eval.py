@@ -58,8 +58,6 @@ def parse_args(argv=None):
     ap.add_argument("--quad", type=int, default=32, help="quadrature grid height")
     ap.add_argument("--examples", type=int, default=3, help="examples in the figure")
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
-    ap.add_argument("--tta", type=int, default=1, help="net test-time augmentation copies "
-                    "(NetworkBackend tta: mirror, sub-stride shifts)")
     ap.add_argument("--quick", action="store_true", help="tiny run: 2 masks, res 32")
     a = ap.parse_args(argv)
     if a.quick:
@@ -99,14 +97,14 @@ def coverage_group(c: float):
     return None
 
 
-def make_methods(weights, tta: int = 1) -> dict:
+def make_methods(weights) -> dict:
     """{name: backend}: the net first (if weights), then the fill baselines."""
     backends = importlib.import_module("comgs_dr.lighting.backends")
     methods = {}
     if weights is None and Path(backends.DEFAULT_WEIGHTS).is_file():
         weights = backends.DEFAULT_WEIGHTS
     if weights:
-        methods["net"] = backends.load_network_backend(weights, tta=tta)
+        methods["net"] = backends.load_network_backend(weights)
     else:
         print("no --weights and no shipped weights: evaluating the baselines only")
     for kind in BASELINES:
@@ -125,7 +123,7 @@ def evaluate(args, progress=print) -> dict:
     pano = importlib.import_module("comgs_dr.lighting.pano_data")
     labels = json.loads(Path(args.labels).read_text()) if args.labels else {}
     maps = list_maps(args.maps)
-    methods = make_methods(args.weights, getattr(args, "tta", 1))
+    methods = make_methods(args.weights)
     h, w = args.res, 2 * args.res
     rng = np.random.default_rng(args.seed)
     sphere = dict(size=args.sphere_size, azimuths=lm.ARRAY_AZIMUTHS, quad_height=args.quad)

@@ -112,7 +112,8 @@ def test_blend_keeps_observed_pixels(default_net):
     rgb, normal, mask = inputs()
     rgb = rgb * 0.9                          # nothing saturated
     rgb[0, :, 0, 0] = 1.0                   # one saturated observed pixel
-    mask[0, 0, 0, 0] = 1.0
+    rgb[0, 0, 0, 1] = 1.0                   # one with only its red channel clipped
+    mask[0, 0, 0, :2] = 1.0
     res = default_net.complete(rgb, normal, mask, label=0)
     assert sorted(res) == [-5.0, -2.5, 0.0]
     seen = mask.expand_as(rgb) > 0
@@ -124,10 +125,14 @@ def test_blend_keeps_observed_pixels(default_net):
         want = torch.as_tensor(np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055))
         ok = seen.clone()
         ok[0, :, 0, 0] = False
+        ok[0, 0, 0, 1] = False
         assert torch.allclose(res[ev][ok], want[ok], atol=1e-5)
-        # ... except saturated ones, whose radiance is unknown: the prediction is used
+        # ... except saturated channels, whose radiance is only bounded below by the clip:
+        # the prediction, raised to that bound where it is darker
         pred = default_net(rgb, normal, mask, ev, 0).pred
-        assert torch.equal(res[ev][0, :, 0, 0], pred[0, :, 0, 0])
+        for y, x, c in ((0, 0, 0), (0, 0, 1), (0, 0, 2), (0, 1, 0)):
+            bound = float(want[0, c, y, x])
+            assert res[ev][0, c, y, x].item() == pytest.approx(max(pred[0, c, y, x].item(), bound))
     holes = ~seen
     assert not torch.equal(res[0.0][holes], rgb[holes])
 
@@ -264,32 +269,3 @@ def test_v1_checkpoints_still_load(tmp_path):
     with pytest.raises(C.WeightsError, match="not supported"):
         C.load_weights(path)
 
-
-def test_network_backend_tta_averages_mirrored_and_shifted_copies():
-    m = net(SMALL, seed=2)
-    h, w = 32, 64
-    rgb, normal, mask = (x[0].permute(1, 2, 0).numpy() for x in inputs(h, w, seed=3))
-    mask = mask[..., 0]
-    one = C.NetworkBackend(m, resolution="input", tta=1)
-    assert one._tta_views(w) == [(False, 0)]
-    four = C.NetworkBackend(m, resolution="input", tta=4)
-    stride = m.config.multiple[1] // 2
-    assert four._tta_views(w) == [(False, 0), (True, 0), (False, stride // 2), (True, stride // 2)]
-    # the manual average of the identity and the mirrored copy == tta=2
-    x = [torch.as_tensor(a).permute(2, 0, 1)[None] for a in (rgb, normal, mask[..., None])]
-    with torch.no_grad():
-        p0 = m(*x, -2.5, 1).pred
-        p1 = torch.flip(m(*(torch.flip(a, (-1,)) for a in x), -2.5, 1).pred, (-1,))
-    ev = torch.full((1,), -2.5)
-    want = C.blend_observed(x[0], x[2], ((p0 + p1) / 2).clamp(0, 1), ev)[0].permute(1, 2, 0).numpy()
-    got = C.NetworkBackend(m, resolution="input", tta=2).complete(rgb, normal, mask, (-2.5,), 1)
-    np.testing.assert_allclose(got[-2.5], want, atol=1e-5)
-    # a shift by the full stride is a no-op for the net (why tta shifts by half of it) ...
-    with torch.no_grad():
-        ps = torch.roll(m(*(torch.roll(a, stride, -1) for a in x), -2.5, 1).pred, -stride, -1)
-    np.testing.assert_allclose(ps.numpy(), p0.numpy(), atol=1e-5)
-    # ... observed pixels still come back exactly at EV 0, and bad tta is refused
-    out = four.complete(rgb, normal, mask, (0.0,), 1)[0.0]
-    np.testing.assert_array_equal(out[mask > 0], rgb[mask > 0])
-    with pytest.raises(ValueError, match="tta"):
-        C.NetworkBackend(m, tta=0)

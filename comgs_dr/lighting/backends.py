@@ -94,8 +94,8 @@ class FillBackend(CompletionBackend):
 # ---------------------------------------------------------------------------------------
 # The trained completion network
 
-def load_network_backend(path=None, resolution: tuple[int, int] | None = None,
-                         tta: int = 1) -> NetworkBackend:
+def load_network_backend(path=None, resolution: tuple[int, int] | None = None
+                         ) -> NetworkBackend:
     """``NetworkBackend`` of the ``CompletionNet`` checkpoint at ``path`` (default
     ``DEFAULT_WEIGHTS``). FileNotFoundError, saying how to produce weights, when missing;
     ``completion.WeightsError`` for an unusable file."""
@@ -105,7 +105,7 @@ def load_network_backend(path=None, resolution: tuple[int, int] | None = None,
             f"completion weights not found: {p}. Train them with `comgs train-completion` "
             f"(or pass a checkpoint saved by comgs_dr.lighting.completion.save_weights), or "
             f"use a non-learned backend (--backend push_pull)")
-    return NetworkBackend(completion.load_weights(p), resolution, tta=tta)
+    return NetworkBackend(completion.load_weights(p), resolution)
 
 
 # ---------------------------------------------------------------------------------------
