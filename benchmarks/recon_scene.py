@@ -29,20 +29,13 @@ def main():
     import comgs_dr
     comgs_dr.set_variant("llvm_ad_rgb")
     from comgs_dr import cli
-    from comgs_dr.demo import procedural_scene, procedural_sky
-    from comgs_dr.eval.synthetic import ObjectDatasetConfig, make_object_dataset
-    a.out.mkdir(parents=True, exist_ok=True)
-    if (a.out / "dataset" / "transforms_train.json").exists() and \
-            (a.out / "dataset" / "points3d.ply").exists() != (a.points > 0):
-        ap.error(f"{a.out}/dataset was made with{'out' if a.points else ''} points; use another --out")
+    from comgs_dr.demo import scene_dataset_config
+    from comgs_dr.eval.synthetic import make_object_dataset
     ds = a.out / "dataset"
+    if (ds / "transforms_train.json").exists() and (ds / "points3d.ply").exists() != (a.points > 0):
+        ap.error(f"{ds} was made with{'out' if a.points else ''} points; use another --out")
     if not (ds / "transforms_train.json").exists():
-        make_object_dataset(ObjectDatasetConfig(
-            mesh=procedural_scene(a.out / "scene.ply"), envmap=procedural_sky(a.out / "sky.exr"), out_dir=ds,
-            n_train=a.views, n_test=12, resolution=a.res, spp=32, spp_aov=4, relight_envmaps=(),
-            up_axis="z", texture=None, base_color=(0.55, 0.5, 0.45), train_elevation_deg=(15.0, 75.0),
-            sfm_points=a.points),
-            progress=False)
+        make_object_dataset(scene_dataset_config(ds, a.views, 12, a.res, a.points), progress=False)
     run = a.out / "run"
     t0 = time.perf_counter()
     cli.main(["reconstruct", str(ds), "--out", str(run), "--scene", "--iterations", str(a.iterations),

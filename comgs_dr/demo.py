@@ -64,6 +64,21 @@ def procedural_scene(path: Path) -> Path:
     return path
 
 
+def scene_dataset_config(out_dir, n_train: int = 60, n_test: int = 12, resolution: int = 96,
+                         points: int = 20_000, seed: int = 0, spp: int = 32):
+    """``ObjectDatasetConfig`` of the procedural table-top scene (``procedural_scene`` under
+    ``procedural_sky``, written into ``out_dir``) with an SfM-like ``points3d.ply`` of
+    ``points`` points (0: none): the scene preset's test case, ``comgs make-dataset scene``."""
+    from .eval.synthetic import ObjectDatasetConfig
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    return ObjectDatasetConfig(
+        mesh=procedural_scene(out / "scene_mesh.ply"), envmap=procedural_sky(out / "scene_sky.exr"),
+        out_dir=out, n_train=n_train, n_test=n_test, resolution=resolution, spp=spp, spp_aov=4,
+        relight_envmaps=(), up_axis="z", texture=None, base_color=(0.55, 0.5, 0.45),
+        train_elevation_deg=(15.0, 75.0), sfm_points=points, seed=seed)
+
+
 def procedural_sky(path: Path, width: int = 256) -> Path:
     """Equirect HDR sky (Z-up, the dataset's orientation): gradient, ground, small bright sun."""
     import mitsuba as mi

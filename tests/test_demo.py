@@ -1,4 +1,5 @@
 """`comgs demo` end to end at a tiny size (the README's first command)."""
+import numpy as np
 import json
 import math
 
@@ -20,3 +21,16 @@ def test_demo_runs_and_improves(tmp_path, capsys):
     assert s["test_psnr_after_fit"] > s["test_psnr_before_fit"] + 1.0
     assert (out / "gbuffers.png").stat().st_size > 1000
     assert "test PSNR" in capsys.readouterr().out
+
+
+def test_make_dataset_scene_cli(tmp_path):
+    """`comgs make-dataset scene`: the scene preset's test case, with and without points."""
+    from comgs_dr import cli
+    from comgs_dr.recon.data import load_dataset
+    args = ["--views", "4", "--test-views", "2", "--res", "16", "--quiet"]
+    assert cli.main(["make-dataset", "scene", "--out", str(tmp_path / "a"), "--points", "50", *args]) == 0
+    d = load_dataset(tmp_path / "a")
+    assert len(d.train) == 4 and len(d.test) == 2 and d.points.shape == (50, 3)
+    assert np.abs(d.points).max() < 1.5                       # on the (normalised) scene
+    assert cli.main(["make-dataset", "scene", "--out", str(tmp_path / "b"), "--points", "0", *args]) == 0
+    assert load_dataset(tmp_path / "b").points is None
