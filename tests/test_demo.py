@@ -1,7 +1,8 @@
 """`comgs demo` end to end at a tiny size (the README's first command)."""
-import numpy as np
 import json
 import math
+
+import numpy as np
 
 from comgs_dr import cli
 
