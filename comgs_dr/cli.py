@@ -168,6 +168,10 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--time-limit", type=float, help="stop (and checkpoint) after this many seconds")
     p.add_argument("--lambda-d2n", type=float, help="depth-normal prior weight (default: config's)")
     p.add_argument("--d2n-from", type=int, help="iteration the depth-normal prior starts at")
+    p.add_argument("--densify", action="store_true",
+                   help="2DGS clone/split + opacity resets (densify until half of the run, reset "
+                        "at its quarter and half; default: prune only, measured better on both "
+                        "presets within CPU budgets; useful after a random init)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--variant", default="auto")
     p.add_argument("--quiet", action="store_true")
@@ -193,6 +197,9 @@ def _cmd_reconstruct(args) -> int:
         kw["lambda_d2n"] = args.lambda_d2n
     if args.d2n_from is not None:
         kw["d2n_from"] = args.d2n_from
+    if args.densify:
+        n = kw.get("iterations", RadianceConfig.iterations)
+        kw["densify"] = dict(stop=max(1, n // 2), opacity_reset_interval=max(1, n // 4))
     write_run_info(args.out, args.data, args.preset, args.resolution_scale, args.white_background)
     s = train_radiance(data, args.out, RadianceConfig(**kw), progress=not args.quiet)
     print(f"step 1 done: {s['iterations']} iterations in {s['train_seconds']:.0f} s, {s['surfels']} surfels, "

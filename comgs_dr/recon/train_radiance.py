@@ -30,7 +30,8 @@ PARAM_KEYS = {f: f"surfels.{f}" for f in field_names() if f not in ("albedo", "r
 @dataclasses.dataclass
 class RadianceConfig:
     """Step-1 settings. ``preset`` 'object' uses masks (visual-hull init, mask loss);
-    'scene' initialises from the dataset's points (or a random sphere)."""
+    'scene' initialises from the dataset's points (COLMAP, or ``points3d.ply`` beside NeRF-style
+    JSON), else from random points in the common view frustum, and has no mask loss."""
     preset: str = "object"
     iterations: int = 3000
     max_hits: int = 24
@@ -60,7 +61,7 @@ class RadianceConfig:
     lr_opacity: float = 0.05
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
-    densify: dict | None = None           # DensityConfig overrides; None: the preset's default
+    densify: dict | None = None           # DensityConfig fields; None: prune only (see below)
     # Largest surfel scale (σ) as a fraction of the scene extent; None: the preset's default.
     # Objects never split (see below), and without splitting a few surfels were measured to
     # grow to σ ≈ 0.17-0.3 on spot (×8-15 the median) and haze the fit from ~700 its on
@@ -80,18 +81,20 @@ class RadianceConfig:
             raise ValueError("RadianceConfig.iterations must be ≥ 1")
         if self.sh_degree not in (0, 1, 2, 3):
             raise ValueError("RadianceConfig.sh_degree must be 0..3")
-        # Objects start from a dense visual-hull shell; cloning/splitting and opacity
-        # resets were measured to cost 1-2 dB test PSNR on the spot object within the
-        # CPU budget (densified 27.1/26.6 dB vs 28.3/28.6 dB at 300/400 iterations), so
-        # the object preset only prunes. Scenes use 2DGS-style density control on the
-        # 2DGS schedule scaled to the run (2DGS: densify until 15k of 30k its, reset every
-        # 3k): densify until half of the run, reset the opacities at its quarter and half.
-        preset = (dict(max_fraction=0.0, opacity_reset_interval=10 ** 9) if self.preset == "object"
-                  else dict(stop=max(1, self.iterations // 2),
-                            opacity_reset_interval=max(1, self.iterations // 4)))
-        self.densify = {**preset, **(self.densify or {})}
+        # Both presets only prune by default (no clone/split, no opacity reset): measured
+        # within CPU budgets, density control cost test PSNR. Objects (visual-hull shell,
+        # spot): 27.1/26.6 dB densified vs 28.3/28.6 dB at 300/400 its. Scenes (SfM points,
+        # `comgs make-dataset scene`, 750 its): 2DGS clone/split on a scaled schedule 20.8 dB
+        # (18.4 without the scale cap) vs 23.1 dB prune-only; the drop starts at the first
+        # densification and grows with the run. Pass ``densify`` (DensityConfig fields over
+        # its 2DGS defaults, {} for all defaults) to enable it, e.g. after a random init.
+        if self.densify is None:
+            self.densify = dict(max_fraction=0.0, opacity_reset_interval=10 ** 9)
         if self.max_scale_frac is None:
-            self.max_scale_frac = 0.01 if self.preset == "object" else 1.0
+            # scenes: measured 20.8 vs 18.4 dB at 750 its (19.5 vs 15.6 at 1000) with σ capped
+            # at 2 % of the extent vs uncapped (a large hazy floater formed above the scene)
+            self.max_scale_frac = 0.01 if self.preset == "object" else 0.02
+
         if not 0 < self.max_scale_frac <= 1.0:
             raise ValueError("RadianceConfig.max_scale_frac must be in (0, 1]")
 
@@ -114,8 +117,10 @@ def initial_surfels(data, cfg: RadianceConfig, rng) -> tuple[SurfelParams, str]:
     if how == "points":
         if data.points is None:
             raise ValueError("init='points' but the dataset has no points (use hull or random)")
-        return I.surfels_from_points(data.points, data.colors, rng, opacity=cfg.init_opacity), \
-            f"dataset points ({len(data.points)})"
+        quats = I.pca_normal_quaternions(data.points) if cfg.init_normals else None
+        return I.surfels_from_points(data.points, data.colors, rng, opacity=cfg.init_opacity,
+                                     quats=quats), \
+            f"dataset points ({len(data.points)}{', PCA normals' if quats is not None else ''})"
     if how == "random":
         pts = I.frustum_points(data.train, cfg.init_points, np.asarray(center), radius, rng)
         return I.surfels_from_points(pts, None, rng), f"random, in the common view frustum ({len(pts)} points)"
