@@ -84,15 +84,16 @@ class RadianceConfig:
         # Both presets only prune by default (no clone/split, no opacity reset): measured
         # within CPU budgets, density control cost test PSNR. Objects (visual-hull shell,
         # spot): 27.1/26.6 dB densified vs 28.3/28.6 dB at 300/400 its. Scenes (SfM points,
-        # `comgs make-dataset scene`, 750 its): 2DGS clone/split on a scaled schedule 20.8 dB
-        # (18.4 without the scale cap) vs 23.1 dB prune-only; the drop starts at the first
-        # densification and grows with the run. Pass ``densify`` (DensityConfig fields over
+        # `comgs make-dataset scene`, 1500 its): prune-only 30.4 dB; `--densify` (clone/split
+        # until 750, opacity resets at 375 and 750) 28.9 dB at 500 its, 20.0 dB at the end (the
+        # opacities had not recovered from the reset at 750). Pass ``densify`` (DensityConfig fields over
         # its 2DGS defaults, {} for all defaults) to enable it, e.g. after a random init.
         if self.densify is None:
             self.densify = dict(max_fraction=0.0, opacity_reset_interval=10 ** 9)
         if self.max_scale_frac is None:
             # scenes: measured 20.8 vs 18.4 dB at 750 its (19.5 vs 15.6 at 1000) with σ capped
-            # at 2 % of the extent vs uncapped (a large hazy floater formed above the scene)
+            # at 2 % of the extent vs uncapped, with clone/split (a large hazy floater formed
+            # above the scene; on a version of the scene dataset with black GT pixels)
             self.max_scale_frac = 0.01 if self.preset == "object" else 0.02
 
         if not 0 < self.max_scale_frac <= 1.0:
