@@ -1,8 +1,10 @@
 """`comgs demo` end to end at a tiny size (the README's first command)."""
 import json
 import math
+import warnings
 
 import numpy as np
+import pytest
 
 from comgs_dr import cli
 
@@ -35,3 +37,13 @@ def test_make_dataset_scene_cli(tmp_path):
     assert np.abs(d.points).max() < 1.5                       # on the (normalised) scene
     assert cli.main(["make-dataset", "scene", "--out", str(tmp_path / "b"), "--points", "0", *args]) == 0
     assert load_dataset(tmp_path / "b").points is None
+    # the scene preset starts from the points, else (with a warning) from the view frustum
+    from comgs_dr.recon.train_radiance import RadianceConfig, initial_surfels
+    cfg = RadianceConfig(preset="scene", init_points=300)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        p, how = initial_surfels(d, cfg, np.random.default_rng(0))
+    assert p.count == 50 and how.startswith("dataset points")
+    with pytest.warns(UserWarning, match="without dataset points"):
+        p, how = initial_surfels(load_dataset(tmp_path / "b"), cfg, np.random.default_rng(0))
+    assert p.count == 300 and "frustum" in how
