@@ -126,7 +126,7 @@ def initial_surfels(data, cfg: RadianceConfig, rng) -> tuple[SurfelParams, str]:
         if cfg.preset == "scene":
             import warnings
             warnings.warn("scene preset without dataset points: random initialisation, measured "
-                          "at ~13 dB test PSNR on `comgs make-dataset scene --points 0` (30.6 dB "
+                          "at 14.1 dB test PSNR on `comgs make-dataset scene --points 0` (30.6 dB "
                           "with points); give COLMAP points or a points3d.ply", stacklevel=3)
         pts = I.frustum_points(data.train, cfg.init_points, np.asarray(center), radius, rng)
         return I.surfels_from_points(pts, None, rng), f"random, in the common view frustum ({len(pts)} points)"
