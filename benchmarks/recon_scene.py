@@ -3,7 +3,7 @@
 Generates a ground slab with four objects under the procedural sky (path traced, NeRF-synthetic
 layout) with an SfM-like sparse cloud (``points3d.ply``: surface points seen by >= 2 training
 views, coloured, jittered; what COLMAP gives a real capture), fits it with
-`comgs reconstruct --scene` (init from those points, no mask loss, 2DGS density control) and
+`comgs reconstruct --scene` (init from those points, no mask loss, prune-only) and
 prints the test PSNR/SSIM from `comgs render`. ``--points 0`` drops the cloud (random init).
 
     python benchmarks/recon_scene.py [--res 96] [--views 60] [--iterations 1500] [--points 20000]

@@ -183,7 +183,7 @@ def _cmd_reconstruct(args) -> int:
     set_variant(args.variant)
     from .recon.data import load_dataset
     from .recon.render_run import write_run_info
-    from .recon.train_radiance import RadianceConfig, train_radiance
+    from .recon.train_radiance import RadianceConfig, scaled_density_schedule, train_radiance
     data = load_dataset(args.data, white_background=args.white_background,
                         resolution_scale=args.resolution_scale)
     kw = {"preset": args.preset, "seed": args.seed}
@@ -198,8 +198,7 @@ def _cmd_reconstruct(args) -> int:
     if args.d2n_from is not None:
         kw["d2n_from"] = args.d2n_from
     if args.densify:
-        n = kw.get("iterations", RadianceConfig.iterations)
-        kw["densify"] = dict(stop=max(1, n // 2), opacity_reset_interval=max(1, n // 4))
+        kw["densify"] = scaled_density_schedule(kw.get("iterations", RadianceConfig.iterations))
     write_run_info(args.out, args.data, args.preset, args.resolution_scale, args.white_background)
     s = train_radiance(data, args.out, RadianceConfig(**kw), progress=not args.quiet)
     print(f"step 1 done: {s['iterations']} iterations in {s['train_seconds']:.0f} s, {s['surfels']} surfels, "

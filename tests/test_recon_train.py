@@ -119,3 +119,13 @@ def test_cli_errors_name_the_path(tmp_path, capsys):
     assert "missing" in capsys.readouterr().err
     assert cli.main(["render", str(tmp_path), "--quiet"]) == 2
     assert "run.json" in capsys.readouterr().err
+
+
+def test_scaled_density_schedule_and_preset_defaults():
+    from comgs_dr.recon.train_radiance import RadianceConfig, scaled_density_schedule
+    assert scaled_density_schedule(1500) == {"stop": 750, "opacity_reset_interval": 375}
+    assert scaled_density_schedule(1) == {"stop": 1, "opacity_reset_interval": 1}
+    for preset, cap in (("object", 0.01), ("scene", 0.02)):
+        c = RadianceConfig(preset=preset)
+        assert c.densify["max_fraction"] == 0.0 and c.max_scale_frac == cap   # prune only
+    assert RadianceConfig(preset="scene", densify={}).densify == {}          # explicit: as given

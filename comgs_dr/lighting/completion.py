@@ -488,4 +488,3 @@ class NetworkBackend(CompletionBackend):
             img = blend_observed(r, m, pred.clamp(0, 1), ev)
             out[float(e)] = img[0].permute(1, 2, 0).cpu().numpy().astype(np.float32)
         return out
-

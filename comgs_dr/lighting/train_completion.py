@@ -10,8 +10,8 @@ Two steps as in the paper, with our small U-Net (``lighting.completion``) instea
   relative exposure EV_gt ∈ [EV_min, 0] (half of the draws at {0, −2.5, −5}) and the network is
   conditioned on ξ_ev. The paper's pair construction (I_aug at EV_aug, I_gt at EV_gt).
 
-Loss: L1 between the network's completed output (observed pixels pasted, saturated ones
-re-predicted at EV < 0) and the target, per-pixel solid-angle weights, divided per sample by
+Loss: L1 between the network's completed output (``completion.blend_observed``: observed pixels
+pasted, channels clipped at EV 0 re-predicted at EV < 0, never below the clip) and the target, per-pixel solid-angle weights, divided per sample by
 (mean target + 0.02) so dark EV −5 targets weigh as much as EV 0 ones (the paper uses a plain
 L1 on a v-prediction; with a direct regressor and dark targets the raw L1 ignores the lights).
 AdamW (β = 0.9, 0.999, weight decay 0.01), linear warm-up then cosine decay, gradient

@@ -84,10 +84,11 @@ class RadianceConfig:
         # Both presets only prune by default (no clone/split, no opacity reset): measured
         # within CPU budgets, density control cost test PSNR. Objects (visual-hull shell,
         # spot): 27.1/26.6 dB densified vs 28.3/28.6 dB at 300/400 its. Scenes (SfM points,
-        # `comgs make-dataset scene`, 1500 its): prune-only 30.4 dB; `--densify` (clone/split
-        # until 750, opacity resets at 375 and 750) 28.9 dB at 500 its, 20.0 dB at the end (the
-        # opacities had not recovered from the reset at 750). Pass ``densify`` (DensityConfig fields over
-        # its 2DGS defaults, {} for all defaults) to enable it, e.g. after a random init.
+        # `comgs make-dataset scene`, 1500 its): prune-only 30.4 dB; `--densify`
+        # (``scaled_density_schedule``: clone/split until 750, opacity resets at 375 and 750)
+        # 28.9 dB at 500 its, 20.0 dB at the end (the opacities had not recovered from the
+        # reset at 750). Pass ``densify`` (DensityConfig fields over its 2DGS defaults, {} for
+        # all defaults) to enable it, e.g. after a random init.
         if self.densify is None:
             self.densify = dict(max_fraction=0.0, opacity_reset_interval=10 ** 9)
         if self.max_scale_frac is None:
@@ -95,9 +96,15 @@ class RadianceConfig:
             # at 2 % of the extent vs uncapped, with clone/split (a large hazy floater formed
             # above the scene; on a version of the scene dataset with black GT pixels)
             self.max_scale_frac = 0.01 if self.preset == "object" else 0.02
-
         if not 0 < self.max_scale_frac <= 1.0:
             raise ValueError("RadianceConfig.max_scale_frac must be in (0, 1]")
+
+
+def scaled_density_schedule(iterations: int) -> dict:
+    """``RadianceConfig.densify`` for 2DGS density control on a schedule scaled to the run
+    (2DGS: densify until 15k of 30k its, reset every 3k): densify until half of the run,
+    reset the opacities at its quarter and half."""
+    return dict(stop=max(1, iterations // 2), opacity_reset_interval=max(1, iterations // 4))
 
 
 def initial_surfels(data, cfg: RadianceConfig, rng) -> tuple[SurfelParams, str]:
