@@ -25,10 +25,10 @@ def main(argv=None):
 
     import comgs_dr
     comgs_dr.set_variant("llvm_ad_rgb")
-    from comgs_dr.cameras import gbuffer_scene
+    from comgs_dr.data.pano_masks import random_surfel_scene
     from comgs_dr.lighting import backends
-    from comgs_dr.lighting.estimate import EstimateConfig, estimate_light
-    from comgs_dr.lighting.pano_data import random_surfel_scene
+    from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light
+    from comgs_dr.surfels.scene import gbuffer_scene
     methods = {"net": backends.load_network_backend(), "push_pull": backends.FillBackend("push_pull")}
     cfg = EstimateConfig(width=a.width, height=a.width // 2, exclude_radius=0.1)
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, python "

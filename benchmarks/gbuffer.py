@@ -19,6 +19,8 @@ import subprocess
 import sys
 import time
 
+from comgs_dr.surfels.scene import gbuffer_scene
+
 
 def run_one(n: int, res: int, K: int, targets: str, repeats: int) -> dict:
     import resource
@@ -31,13 +33,13 @@ def run_one(n: int, res: int, K: int, targets: str, repeats: int) -> dict:
     import drjit as dr
     import mitsuba as mi
 
-    from comgs_dr import cameras
+    from comgs_dr.core import cameras
     from comgs_dr.surfels import from_mesh
 
     mesh = trimesh.creation.icosphere(subdivisions=4, radius=0.8)
     mesh = trimesh.util.concatenate([mesh, trimesh.creation.box((2.5, 2.5, 0.1), transform=trimesh.transformations.translation_matrix([0, 0, -0.9]))])
     params = from_mesh(mesh, n, seed=0)
-    scene = cameras.gbuffer_scene({"obj": params}, cameras.perspective([0, -3.2, 1.6], res=res, fov=45),
+    scene = gbuffer_scene({"obj": params}, cameras.perspective([0, -3.2, 1.6], res=res, fov=45),
                                   max_hits=K, targets=targets)
     mp = mi.traverse(scene)
 

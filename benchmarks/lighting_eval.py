@@ -6,7 +6,7 @@ diffuse sphere under the estimate and under the ground truth (``eval.lighting_me
 grouped by mask coverage 40–60 / 60–80 / 80–100 % (masks below 40 % are skipped and counted).
 
 For every .hdr/.exr in ``--maps`` (equirect; resized by solid-angle area averaging to
-res × 2·res) and each of ``--masks`` masks (``lighting.pano_data.mask_bank``: alpha + normals
+res × 2·res) and each of ``--masks`` masks (``data.pano_masks.mask_bank``: alpha + normals
 traced from procedural surfel scenes), with a random rotation about Z:
 
 * GT = k·map, k = ``pano_data.auto_exposure`` (the "capture" exposure);
@@ -37,6 +37,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from comgs_dr.data import pano_masks
 
 GROUPS = (("40-60", 0.4, 0.6), ("60-80", 0.6, 0.8), ("80-100", 0.8, 1.0 + 1e-9))
 METRICS = (("si_rmse", "si-RMSE"), ("angular_deg", "angular °"), ("nrmse", "nRMSE"))
@@ -128,7 +130,7 @@ def evaluate(args, progress=print) -> dict:
     rng = np.random.default_rng(args.seed)
     sphere = dict(size=args.sphere_size, azimuths=lm.ARRAY_AZIMUTHS, quad_height=args.quad)
     t0 = time.perf_counter()
-    bank = pano.mask_bank(args.masks * len(maps), h, w, args.seed)
+    bank = pano_masks.mask_bank(args.masks * len(maps), h, w, args.seed)
     t_masks = time.perf_counter() - t0
     records, examples, skipped, t_render = [], [], 0, []
     for mi_, path in enumerate(maps):

@@ -33,8 +33,8 @@ def psnr_table(run: Path) -> None:
 
 
 def make_data(res: int, root: Path) -> Path:
+    from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
     from comgs_dr.demo import procedural_object, procedural_sky
-    from comgs_dr.eval.synthetic import ObjectDatasetConfig, make_object_dataset
     out = root / f"ds{res}"
     if not (out / "transforms_train.json").exists():
         root.mkdir(parents=True, exist_ok=True)
@@ -49,8 +49,8 @@ def bench(data_dir: Path, n_surfels: int, iters: int) -> dict:
     import drjit as dr
     import mitsuba as mi
 
-    from comgs_dr.recon.data import load_dataset
-    from comgs_dr.recon.train_radiance import PARAM_KEYS, RadianceConfig, Trainer
+    from comgs_dr.data.load import load_dataset
+    from comgs_dr.stages.reconstruct import PARAM_KEYS, RadianceConfig, Trainer
     data = load_dataset(data_dir)
     cfg = RadianceConfig(init="random", init_points=n_surfels, densify=dict(start=10 ** 9),
                          sh_increase_every=0, sh_degree=0)

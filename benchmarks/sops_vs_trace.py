@@ -31,9 +31,13 @@ import numpy as np
 def make_quick_run(root: Path, views: int, res: int, surfels: int) -> Path:
     """Tiny dataset + mesh-sampled surfels written as a step-1 run folder."""
     import trimesh
-    from comgs_dr.eval.synthetic import ObjectDatasetConfig, default_mesh, make_object_dataset
-    from comgs_dr.recon.render_run import write_run_info
+
+    from comgs_dr.data.synthetic import (
+        ObjectDatasetConfig,
+        make_object_dataset,
+    )
     from comgs_dr.surfels import from_mesh, save_ply
+    from comgs_dr.train.run import write_run_info
     ds = root / "data"
     make_object_dataset(ObjectDatasetConfig(out_dir=ds, n_train=views, n_test=6, resolution=res,
                                             spp=16, spp_aov=4), progress=False)
@@ -57,8 +61,8 @@ def heldout_maps(run: Path) -> list[str]:
 
 def train(run: Path, out: Path, visibility: str, probes: int, rays: int, iterations: int,
           env_res: int, eval_every: int) -> dict:
-    from comgs_dr.recon.relight import relight_run
-    from comgs_dr.recon.train_material import MaterialConfig, train_material
+    from comgs_dr.stages.decompose import MaterialConfig, train_material
+    from comgs_dr.stages.relight import relight_run
     cfg = MaterialConfig(visibility=visibility, probe_count=probes, rays=rays,
                          iterations=iterations, env_res=env_res, eval_every=eval_every,
                          eval_views=4, log_every=1, checkpoint_every=10 ** 9)

@@ -15,8 +15,25 @@ code. Heavy modules are imported inside the ``_cmd_`` functions.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 
+from comgs_dr import set_variant
+from comgs_dr.data.load import load_dataset
+from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
+from comgs_dr.demo import DemoConfig, run_demo, scene_dataset_config
+from comgs_dr.lighting import backends
+from comgs_dr.stages import train_completion
+from comgs_dr.stages.decompose import MaterialConfig, train_material
+from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light, write_outputs
+from comgs_dr.stages.reconstruct import (
+    RadianceConfig,
+    scaled_density_schedule,
+    train_radiance,
+)
+from comgs_dr.stages.relight import relight_run
+from comgs_dr.stages.render_run import render_run
+from comgs_dr.train.run import write_run_info
 
 # ----------------------------------------------------------------------------- make-dataset
 
@@ -80,8 +97,6 @@ def _cmd_make_dataset(args) -> int:
 
 
 def _make_object(args) -> int:
-    from . import set_variant
-    from .eval.synthetic import ObjectDatasetConfig, make_object_dataset
     overrides = {k: getattr(args, k) for k in
                  ("mesh", "envmap", "n_train", "n_test", "resolution", "spp", "seed", "up_axis",
                   "sfm_points")
@@ -99,11 +114,7 @@ def _make_object(args) -> int:
 
 
 def _make_scene(args) -> int:
-    import dataclasses
 
-    from . import set_variant
-    from .demo import scene_dataset_config
-    from .eval.synthetic import make_object_dataset
     if args.points < 0:
         raise SystemExit("comgs make-dataset scene: --points must be >= 0")
     cfg = scene_dataset_config(args.out, args.n_train, args.n_test, args.resolution, args.points,
@@ -118,7 +129,6 @@ def _make_scene(args) -> int:
 # ----------------------------------------------------------------------------- demo
 
 def _add_demo(sub) -> None:
-    from .demo import DemoConfig
     d = DemoConfig()
     p = sub.add_parser("demo", help="run the pipeline on embedded procedural inputs (no download)",
                        description="Procedural object + sky -> path-traced dataset -> surfels -> "
@@ -135,7 +145,6 @@ def _add_demo(sub) -> None:
 
 
 def _cmd_demo(args) -> int:
-    from .demo import DemoConfig, run_demo
     s = run_demo(DemoConfig(out_dir=args.out, resolution=args.res, surfels=args.surfels,
                             fit_iterations=args.iterations, n_train=args.views,
                             progress=not args.quiet))
@@ -179,11 +188,7 @@ def _add_reconstruct(sub) -> None:
 
 
 def _cmd_reconstruct(args) -> int:
-    from . import set_variant
     set_variant(args.variant)
-    from .recon.data import load_dataset
-    from .recon.render_run import write_run_info
-    from .recon.train_radiance import RadianceConfig, scaled_density_schedule, train_radiance
     data = load_dataset(args.data, white_background=args.white_background,
                         resolution_scale=args.resolution_scale)
     kw = {"preset": args.preset, "seed": args.seed}
@@ -216,9 +221,7 @@ def _add_render(sub) -> None:
 
 
 def _cmd_render(args) -> int:
-    from . import set_variant
     set_variant(args.variant)
-    from .recon.render_run import render_run
     r = render_run(args.run, args.views, progress=not args.quiet)
     extra = "".join(f", {k} {r[k]:.3f}" for k in ("normal_mae_deg", "depth_rel") if k in r)
     print(f"{args.views}: PSNR {r['psnr']:.2f} dB, SSIM {r['ssim']:.4f}{extra} over {r['views']} views "
@@ -229,7 +232,6 @@ def _cmd_render(args) -> int:
 # ----------------------------------------------------------------------------- decompose / relight
 
 def _add_decompose(sub) -> None:
-    from .recon.train_material import MaterialConfig
     d = MaterialConfig()
     p = sub.add_parser("decompose", help="step 2: materials + env map + SOPs from a step-1 run",
                        description="Place and bake Surface Octahedral Probes, then optimise "
@@ -255,9 +257,7 @@ def _add_decompose(sub) -> None:
 
 
 def _cmd_decompose(args) -> int:
-    from . import set_variant
     set_variant(args.variant)
-    from .recon.train_material import MaterialConfig, train_material
     cfg = MaterialConfig(visibility=args.visibility, iterations=args.iterations, rays=args.rays,
                          probe_count=args.probe_count, env_res=args.env_res,
                          indirect=not args.no_indirect, seed=args.seed,
@@ -290,9 +290,7 @@ def _add_relight(sub) -> None:
 
 
 def _cmd_relight(args) -> int:
-    from . import set_variant
     set_variant(args.variant)
-    from .recon.relight import relight_run
     r = relight_run(args.run, args.envmap, args.material, args.views, args.rays,
                     envmap_scale=args.scale, out_dir=args.out, progress=not args.quiet,
                     max_views=args.max_views)
@@ -306,7 +304,6 @@ def _cmd_relight(args) -> int:
 # ----------------------------------------------------------------------------- estimate-light
 
 def _add_estimate_light(sub) -> None:
-    from .lighting.estimate import EstimateConfig
     d = EstimateConfig()
     p = sub.add_parser("estimate-light", help="HDR environment map at a placement in a surfel scene",
                        description="Trace a 360-degree panorama of the surfel scene at the "
@@ -342,7 +339,6 @@ def _add_estimate_light(sub) -> None:
 
 
 def _estimate_backend(args):
-    from .lighting import backends
     if args.backend == "net":
         res = tuple(args.net_resolution) if args.net_resolution else None
         return backends.load_network_backend(args.weights, res)
@@ -354,9 +350,7 @@ def _estimate_backend(args):
 
 
 def _cmd_estimate_light(args) -> int:
-    from . import set_variant
     set_variant(args.variant)
-    from .lighting.estimate import EstimateConfig, estimate_light, write_outputs
     cfg = EstimateConfig(width=args.width, height=args.height, max_hits=args.max_hits,
                          exclude_radius=args.exclude_radius, label=args.label,
                          oct_res=args.oct_res, supersample=args.supersample)
@@ -374,7 +368,6 @@ def _cmd_estimate_light(args) -> int:
 # ----------------------------------------------------------------------------- train-completion
 
 def _add_train_completion(sub) -> None:
-    from .lighting import train_completion
     p = sub.add_parser("train-completion", help="train the panorama completion network",
                        description="Generate the training set (Poly Haven maps minus the "
                                    "held-out ones, sunsky skies, path-traced rooms, traced "
@@ -385,9 +378,7 @@ def _add_train_completion(sub) -> None:
 
 
 def _cmd_train_completion(args) -> int:
-    from . import set_variant
     set_variant("llvm_ad_rgb")
-    from .lighting import train_completion
     return train_completion.run_from_args(args)
 
 

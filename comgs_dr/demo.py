@@ -15,7 +15,18 @@ import json
 import time
 from pathlib import Path
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
+import trimesh
+from PIL import Image, ImageDraw
+from tqdm import tqdm
+
+from comgs_dr import set_variant
+from comgs_dr.core import cameras
+from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
+from comgs_dr.surfels import from_mesh, save_ply
+from comgs_dr.surfels.scene import gbuffer_scene
 
 
 @dataclasses.dataclass
@@ -34,7 +45,6 @@ class DemoConfig:
 
 def procedural_object(path: Path) -> Path:
     """A torus with a sphere through its hole, as a Z-up PLY."""
-    import trimesh
     torus = trimesh.creation.torus(major_radius=0.65, minor_radius=0.22, major_sections=96,
                                    minor_sections=32)
     torus.apply_transform(trimesh.transformations.rotation_matrix(0.5, [1, 0, 0]))
@@ -46,7 +56,6 @@ def procedural_object(path: Path) -> Path:
 
 def procedural_scene(path: Path) -> Path:
     """A small Z-up scene as PLY: a ground slab with a torus, a ball, a box and a pillar on it."""
-    import trimesh
     T = trimesh.transformations
     parts = [
         trimesh.creation.box((3.0, 3.0, 0.1), transform=T.translation_matrix([0, 0, -0.05])),
@@ -74,7 +83,6 @@ def scene_dataset_config(out_dir, n_train: int = 60, n_test: int = 12, resolutio
     """``ObjectDatasetConfig`` of the procedural table-top scene (``procedural_scene`` under
     ``procedural_sky``, written into ``out_dir``) with an SfM-like ``points3d.ply`` of
     ``points`` points (0: none): the scene preset's test case, ``comgs make-dataset scene``."""
-    from .eval.synthetic import ObjectDatasetConfig
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     return ObjectDatasetConfig(
@@ -86,7 +94,6 @@ def scene_dataset_config(out_dir, n_train: int = 60, n_test: int = 12, resolutio
 
 def procedural_sky(path: Path, width: int = 256) -> Path:
     """Equirect HDR sky (Z-up, the dataset's orientation): gradient, ground, small bright sun."""
-    import mitsuba as mi
     h = width // 2
     v, u = np.meshgrid((np.arange(h) + 0.5) / h, (np.arange(width) + 0.5) / width, indexing="ij")
     theta, phi = v * np.pi, (0.5 - u) * 2 * np.pi
@@ -103,16 +110,8 @@ def procedural_sky(path: Path, width: int = 256) -> Path:
 
 def run_demo(cfg: DemoConfig) -> dict:
     """Run the demo; returns the summary written to ``<out>/summary.json``."""
-    from . import set_variant
     variant = set_variant("auto")
-    import drjit as dr
-    import mitsuba as mi
-    import trimesh
-    from PIL import Image
 
-    from . import cameras
-    from .eval.synthetic import ObjectDatasetConfig, make_object_dataset
-    from .surfels import from_mesh, save_ply
 
     t_start = time.perf_counter()
     out = Path(cfg.out_dir)
@@ -143,7 +142,7 @@ def run_demo(cfg: DemoConfig) -> dict:
 
     train_frames, train_sensors, train_imgs = frames("train")
     test_frames, test_sensors, test_imgs = frames("test")
-    scene = cameras.gbuffer_scene({"obj": params}, train_sensors + test_sensors, max_hits=32)
+    scene = gbuffer_scene({"obj": params}, train_sensors + test_sensors, max_hits=32)
     integ = scene.integrator()
     n_tr = len(train_sensors)
 
@@ -180,7 +179,6 @@ def run_demo(cfg: DemoConfig) -> dict:
     t_fit = time.perf_counter()
     it = range(cfg.fit_iterations)
     if cfg.progress:
-        from tqdm import tqdm
         it = tqdm(it, desc="fit surfel colours", unit="it")
     for _ in it:
         i = int(rng.integers(n_tr))
@@ -219,7 +217,6 @@ def run_demo(cfg: DemoConfig) -> dict:
 
 def contact_sheet(panels, scale: int = 3):
     """PIL image of labelled panels ([H, W, 1|3] float arrays, linear → sRGB-ish display)."""
-    from PIL import Image, ImageDraw
     tiles = []
     for label, a in panels:
         a = np.asarray(a, np.float32)

@@ -6,15 +6,14 @@ Mitsuba pipeline only needs ``import comgs_dr`` before loading our XML.
 """
 import mitsuba as mi
 
+from comgs_dr.core.variant import is_supported_variant
+from comgs_dr.integrators import sop_pbr, surfel_gbuffer
+from comgs_dr.surfels import shape
+
 SHAPES = ("surfels",)
 INTEGRATORS = ("surfel_gbuffer", "sop_pbr")
 _registered: set[str] = set()
 _callback_installed = False
-
-
-def is_supported_variant(name: str | None) -> bool:
-    """Our kernels run in the JIT + AD RGB variants: llvm_ad_rgb and cuda_ad_rgb."""
-    return name in ("llvm_ad_rgb", "cuda_ad_rgb")
 
 
 def _refuse(kind: str, plugin: str):
@@ -37,13 +36,10 @@ def register_all() -> None:
             mi.register_integrator(p, _refuse("integrator", p))
         _registered.add(name)
         return
-    # Imported lazily: the modules build variant-specific types when used.
-    from .surfels.shape import register as register_shape
-    from .integrators.gbuffer import register as register_gbuffer
-    from .integrators.pbr import register as register_pbr
-    register_shape()
-    register_gbuffer()
-    register_pbr()
+    # Each module builds its variant-specific class when the plugin is first instantiated.
+    shape.register()
+    surfel_gbuffer.register()
+    sop_pbr.register()
     _registered.add(name)
 
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from comgs_dr.core import colorspace
 from comgs_dr.lighting import backends, completion, hdr
 
 H, W = 32, 64
@@ -46,7 +47,7 @@ def test_fill_backend_brackets(kind):
         assert img.min() >= 0 and img.max() <= 1
     assert np.array_equal(out[0.0][obs], rgb[obs])                      # observed kept
     # darker brackets are the EV-0 fill re-exposed
-    lin = hdr.srgb_decode(out[0.0].astype(np.float64))
+    lin = colorspace.srgb_decode(out[0.0].astype(np.float64))
     np.testing.assert_allclose(out[-5.0], hdr.expose(lin, -5.0), atol=1e-6)
     assert out[-5.0].mean() < out[-2.5].mean() < out[0.0].mean()
     # fusing the brackets gives back the decoded fill (float32 rounding only)

@@ -1,13 +1,12 @@
 """Tests of comgs_dr.lighting.brdf: samplers (chi-square), energy, reciprocity, AD
 gradients vs finite differences, extremes, Hammersley sets, Monte Carlo consistency."""
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 import pytest
 
 import comgs_dr  # noqa: F401  (sets up LLVM / plugins before mitsuba is used)
-import drjit as dr
-import mitsuba as mi
-
-from comgs_dr.lighting import brdf
+from comgs_dr.shading import brdf
 
 N_MC = 1 << 18
 

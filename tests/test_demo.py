@@ -29,7 +29,7 @@ def test_demo_runs_and_improves(tmp_path, capsys):
 def test_make_dataset_scene_cli(tmp_path):
     """`comgs make-dataset scene`: the scene preset's test case, with and without points."""
     from comgs_dr import cli
-    from comgs_dr.recon.data import load_dataset
+    from comgs_dr.data.load import load_dataset
     args = ["--views", "4", "--test-views", "2", "--res", "16", "--quiet"]
     assert cli.main(["make-dataset", "scene", "--out", str(tmp_path / "a"), "--points", "50", *args]) == 0
     d = load_dataset(tmp_path / "a")
@@ -38,7 +38,7 @@ def test_make_dataset_scene_cli(tmp_path):
     assert cli.main(["make-dataset", "scene", "--out", str(tmp_path / "b"), "--points", "0", *args]) == 0
     assert load_dataset(tmp_path / "b").points is None
     # the scene preset starts from the points, else (with a warning) from the view frustum
-    from comgs_dr.recon.train_radiance import RadianceConfig, initial_surfels
+    from comgs_dr.stages.reconstruct import RadianceConfig, initial_surfels
     cfg = RadianceConfig(preset="scene", init_points=300)
     with warnings.catch_warnings():
         warnings.simplefilter("error")

@@ -1,13 +1,12 @@
 """Adaptive density control on a toy case: counts, parameter/optimiser alignment."""
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 import pytest
 
-import drjit as dr
-import mitsuba as mi
-
 from comgs_dr.surfels import SurfelParams
-from comgs_dr.surfels.density import DensityConfig, DensityController, field_to_numpy
-from comgs_dr.surfels.params import field_names
+from comgs_dr.surfels.params import field_names, field_to_numpy
+from comgs_dr.train.density import DensityConfig, DensityController
 
 
 def _toy():
@@ -40,7 +39,7 @@ def test_clone_split_prune_counts_and_alignment():
         idx = np.arange(6, dtype=np.float32)
         a = np.broadcast_to(idx[:, None], field_to_numpy(f, m, 6).shape) if field_to_numpy(f, m, 6).ndim == 2 \
             else idx
-        from comgs_dr.surfels.density import field_from_numpy
+        from comgs_dr.surfels.params import field_from_numpy
         opt.state[f] = (value, promoted, lr, (t, field_from_numpy(f, a, m), field_from_numpy(f, a + 100, m), vm))
     out, stats = ctl.densify_and_prune(p, opt, keys, rng=np.random.default_rng(0))
     assert stats == {"cloned": 1, "split": 1, "pruned": 2, "total": 6 - 1 - 2 + 1 + 2}

@@ -4,8 +4,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from comgs_dr.core import octahedral as octa
 from comgs_dr.lighting import envmap as em
-from comgs_dr.sops import octahedral as octa
 
 
 def _vec(a):
@@ -59,7 +59,7 @@ def test_oct_conversion_preserves_sun_power():
 
 def test_matches_mitsuba_envmap_orientation(rng):
     """Our equirect convention is the one the dataset generator gives Mitsuba's emitter."""
-    from comgs_dr.eval.synthetic import ENVMAP_TO_WORLD
+    from comgs_dr.data.synthetic import ENVMAP_TO_WORLD
     eq = _smooth_equirect(128).astype(np.float32)
     emitter = mi.load_dict({"type": "envmap", "bitmap": mi.Bitmap(eq),
                             "to_world": mi.ScalarTransform4f(ENVMAP_TO_WORLD)})

@@ -7,9 +7,16 @@ import numpy as np
 import pytest
 import torch
 
+from comgs_dr.core import colorspace, equirect
 from comgs_dr.lighting import backends, completion, envmap, hdr
-from comgs_dr.lighting.estimate import (EstimateConfig, backend_input, estimate_light,
-                                        output_paths, sanitize_trace, write_outputs)
+from comgs_dr.stages.estimate_light import (
+    EstimateConfig,
+    backend_input,
+    estimate_light,
+    output_paths,
+    sanitize_trace,
+    write_outputs,
+)
 
 W, H = 64, 32
 POS = np.array([0.05, -0.1, 0.2])
@@ -22,6 +29,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 def _mesh_surfels(vertices, faces, rgb, n, seed):
     import trimesh
+
     from comgs_dr.surfels.from_mesh import from_mesh
     m = trimesh.Trimesh(np.asarray(vertices, float), faces, process=False)
     m.visual.vertex_colors = np.tile(np.r_[rgb, 255], (len(m.vertices), 1)).astype(np.uint8)
@@ -39,7 +47,7 @@ def _scene_params():
 
 
 def _scene(params):
-    from comgs_dr.cameras import gbuffer_scene
+    from comgs_dr.surfels.scene import gbuffer_scene
     return gbuffer_scene({"scene": params}, [], targets="weight")
 
 
@@ -62,7 +70,7 @@ def result(params, tiny_weights):
 
 
 def test_end_to_end_outputs(result, params):
-    from comgs_dr.integrators.panorama import PanoramaConfig, trace_panorama
+    from comgs_dr.surfels.panorama import PanoramaConfig, trace_panorama
     r = result
     # the backend saw the trace's display values, coverage and normals
     t = trace_panorama(_scene(params), POS, PanoramaConfig(width=W, height=H, max_hits=16))
@@ -91,10 +99,10 @@ def test_end_to_end_outputs(result, params):
     rgb = r["input"]["rgb"]
     sel = (m > 0.95) & (rgb.max(-1) < 0.8)
     assert sel.sum() > 200
-    err = np.abs(r["hdr"] - hdr.srgb_decode(rgb.astype(np.float64))).max(-1)
+    err = np.abs(r["hdr"] - colorspace.srgb_decode(rgb.astype(np.float64))).max(-1)
     assert np.all(err[sel] <= 2.4 * (1 - m[sel]) + 1e-5)
     # the octahedral map holds the same mean radiance (both maps ~ equal-area averages)
-    dw = hdr.pixel_solid_angles(H, W)
+    dw = equirect.pixel_solid_angles(H, W)
     mean_eq = (r["hdr"] * dw[..., None]).sum((0, 1)) / (4 * np.pi)
     np.testing.assert_allclose(r["oct"].mean((0, 1)), mean_eq, rtol=0.15)
     for light in r["lights"]:
@@ -190,7 +198,7 @@ def test_zero_coverage_raises():
 
 
 def test_nonfinite_trace_sanitised(params, monkeypatch, caplog):
-    from comgs_dr.integrators import panorama
+    from comgs_dr.surfels import panorama
     real = panorama.trace_panorama
 
     def nan_trace(*a, **k):
@@ -200,7 +208,7 @@ def test_nonfinite_trace_sanitised(params, monkeypatch, caplog):
         return t
 
     monkeypatch.setattr(panorama, "trace_panorama", nan_trace)
-    with caplog.at_level(logging.WARNING, logger="comgs_dr.lighting.estimate"):
+    with caplog.at_level(logging.WARNING, logger="comgs_dr.stages.estimate_light"):
         r = estimate_light(_scene(params), POS, EstimateConfig(**SMALL),
                            backends.FillBackend("push_pull"))
     assert r["meta"]["nonfinite_pixels"] == 31
@@ -223,7 +231,7 @@ def test_sanitize_and_backend_input_units():
     assert rgb[0, 0, 0] == pytest.approx(1.0)            # linear 2.0 clipped at EV 0
     s["rgb"][:] = 0.2
     rgb, _, _ = backend_input(s)
-    np.testing.assert_allclose(rgb, hdr.srgb_encode(0.2), rtol=1e-6)
+    np.testing.assert_allclose(rgb, colorspace.srgb_encode(0.2), rtol=1e-6)
     s["meta"] = {"colour_space": "srgb"}
     rgb, _, mask = backend_input(s)                      # sRGB fields: their display value
     assert np.all(rgb == np.where(mask[..., None] > 0, 0.5, 0.0)) and mask.sum() == 6

@@ -12,7 +12,7 @@ import pytest
 import comgs_dr
 
 trimesh = pytest.importorskip("trimesh")
-from comgs_dr.eval.synthetic import shared_data_dir  # noqa: E402
+from comgs_dr.data.synthetic import shared_data_dir  # noqa: E402
 
 MESHES = str(shared_data_dir() / "meshes")
 needs_meshes = pytest.mark.skipif(not os.path.isdir(MESHES), reason=f"shared sample meshes not found at {MESHES}")
@@ -24,7 +24,7 @@ def variant():
 
 
 def _fm():
-    from comgs_dr.surfels import from_mesh as fm_fn          # the function (surfels/__init__)
+    from comgs_dr.surfels import from_mesh as fm_fn  # the function (surfels/__init__)
     from comgs_dr.surfels import io
     from comgs_dr.surfels.from_mesh import TILING, linear_to_srgb, srgb_to_linear
     return fm_fn, io, TILING, linear_to_srgb, srgb_to_linear
@@ -214,6 +214,7 @@ def test_loads_meshes_from_paths():
 def _render_coverage(tm, n, seed=1, res=48):
     """(mean surfel weight over pixels fully inside the mesh silhouette, #pixels)."""
     import mitsuba as mi
+
     from comgs_dr.surfels import SurfelShapeBase
     from_mesh, *_ = _fm()
     p = from_mesh(tm, n, seed=seed)

@@ -1,16 +1,16 @@
 """The surfel_gbuffer integrator: hit buffer vs brute force, XML loading, gradients."""
+import mitsuba as mi
 import numpy as np
 import pytest
-
-import drjit as dr
-import mitsuba as mi
-
-from comgs_dr import cameras
-from comgs_dr.integrators import common, compositing, gbuffer
-from comgs_dr.surfels import SurfelParams
-from comgs_dr.surfels.shape import SurfelShapeBase
 from conftest import error_chain_text, random_surfels
 from ref_numpy import render_rays
+
+from comgs_dr.core import cameras
+from comgs_dr.integrators import surfel_gbuffer as gbuffer
+from comgs_dr.surfels import composite as common
+from comgs_dr.surfels import composite as compositing
+from comgs_dr.surfels.scene import gbuffer_scene
+from comgs_dr.surfels.shape import SurfelShapeBase
 
 
 def _rays(rng, n):
@@ -22,7 +22,7 @@ def _rays(rng, n):
 
 
 def _fast(params, o, d, K, targets=gbuffer.TARGETS):
-    scene = cameras.gbuffer_scene(params, cameras.perspective([0, -3, 0], res=4))
+    scene = gbuffer_scene(params, cameras.perspective([0, -3, 0], res=4))
     shapes = common.surfel_shapes(scene, "test")
     ray = mi.Ray3f(mi.Point3f(o.T.astype(np.float32)), mi.Vector3f(d.T.astype(np.float32)))
     hits, buf, acc, _ = compositing.trace_composite(scene, shapes, ray, K, 1e-6, targets)
@@ -69,7 +69,7 @@ class TestHitBufferVsBruteForce:
 
 def test_only_requested_targets_are_produced(rng):
     params = random_surfels(rng, n=20)
-    scene = cameras.gbuffer_scene(params, cameras.perspective([0, -3, 0], res=8), targets="weight,normal")
+    scene = gbuffer_scene(params, cameras.perspective([0, -3, 0], res=8), targets="weight,normal")
     integ = scene.integrator()
     assert integ.aov_names() == ["weight", "normal.X", "normal.Y", "normal.Z"]
     img = mi.render(scene)
@@ -78,9 +78,9 @@ def test_only_requested_targets_are_produced(rng):
     assert set(parts) == {"weight", "normal"}
     # Mitsuba re-raises constructor errors as RuntimeError with our message inside.
     with pytest.raises((ValueError, RuntimeError), match="'targets' has unknown entries"):
-        cameras.gbuffer_scene(params, cameras.perspective([0, -3, 0], res=8), targets="colour")
+        gbuffer_scene(params, cameras.perspective([0, -3, 0], res=8), targets="colour")
     with pytest.raises((ValueError, RuntimeError), match="'max_hits' must be"):
-        cameras.gbuffer_scene(params, cameras.perspective([0, -3, 0], res=8), max_hits=0)
+        gbuffer_scene(params, cameras.perspective([0, -3, 0], res=8), max_hits=0)
 
 
 def test_non_surfel_shape_is_refused(rng):

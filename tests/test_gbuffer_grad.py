@@ -7,16 +7,18 @@ Three tiers (DESIGN §5):
 3. end to end through ``mi.render``: reverse mode equals forward mode
    (<w, J v> = <Jᵀ w, v>) and matches central differences of the rendered image.
 """
-import numpy as np
-import pytest
-
 import drjit as dr
 import mitsuba as mi
-
-from comgs_dr import cameras
-from comgs_dr.integrators import common, compositing, gbuffer
-from comgs_dr.surfels.params import field_names
+import numpy as np
+import pytest
 from conftest import random_surfels
+
+from comgs_dr.core import cameras
+from comgs_dr.integrators import surfel_gbuffer as gbuffer
+from comgs_dr.surfels import composite as common
+from comgs_dr.surfels import composite as compositing
+from comgs_dr.surfels.params import field_names
+from comgs_dr.surfels.scene import gbuffer_scene
 
 PARAMS = field_names()
 TARGETS = gbuffer.TARGETS
@@ -33,7 +35,7 @@ RTOL = 2e-2
 def setup():
     rng = np.random.default_rng(7)
     params = random_surfels(rng, n=30, sh_degree=1, opacity=(-0.5, 2.5))
-    scene = cameras.gbuffer_scene(params, cameras.perspective([0, -3, 0], res=4))
+    scene = gbuffer_scene(params, cameras.perspective([0, -3, 0], res=4))
     shapes = common.surfel_shapes(scene, "test")
     o = rng.uniform(-0.2, 0.2, (256, 3)) + np.array([0.0, -3.0, 0.0])
     d = rng.uniform(-0.5, 0.5, (256, 3)) - o
@@ -141,7 +143,7 @@ def _scalar(x) -> float:
 def _render_setup(targets="all", res=12):
     rng = np.random.default_rng(3)
     params = random_surfels(rng, n=40, sh_degree=1)
-    scene = cameras.gbuffer_scene(params, cameras.perspective([0, -3, 0.3], res=res, fov=35),
+    scene = gbuffer_scene(params, cameras.perspective([0, -3, 0.3], res=res, fov=35),
                                   max_hits=K, targets=targets)
     return scene, mi.traverse(scene), rng
 
@@ -185,7 +187,7 @@ def _layered_setup():
         quats=q, log_scales=np.log(rng.uniform(1.0, 1.5, (n, 2))),
         opacity_logit=rng.uniform(-1.0, 1.0, n), sh=rng.normal(0, 0.2, (n, 4, 3)),
         albedo=rng.uniform(0, 1, (n, 3)), roughness=rng.uniform(0, 1, n), metallic=rng.uniform(0, 1, n))
-    scene = cameras.gbuffer_scene(params, cameras.perspective([0, 0, 3], up=[0, 1, 0], res=12, fov=20),
+    scene = gbuffer_scene(params, cameras.perspective([0, 0, 3], up=[0, 1, 0], res=12, fov=20),
                                   max_hits=K)
     return scene, mi.traverse(scene), rng
 

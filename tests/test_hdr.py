@@ -156,7 +156,7 @@ def _disk_sun(img, direction, radiance, radius_deg, sub=6):
     u = ((np.arange(w)[:, None] + o[None]) / w).ravel()
     v = ((np.arange(h)[:, None] + o[None]) / h).ravel()
     uu, vv = np.meshgrid(u, v)
-    from comgs_dr.lighting.envmap import equirect_uv_to_dir_np
+    from comgs_dr.core.equirect import equirect_uv_to_dir_np
     d = equirect_uv_to_dir_np(np.stack([uu.ravel(), vv.ravel()], -1))
     inside = d @ direction >= np.cos(np.radians(radius_deg))
     # supersample weights ∝ sin θ within a pixel so coverage is a solid-angle fraction

@@ -3,14 +3,12 @@ import importlib
 import importlib.util
 import json
 import re
-import sys
-import types
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from comgs_dr.lighting.hdr import equirect_directions, pixel_solid_angles
+from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
 
 ROOT = Path(__file__).resolve().parents[1]
 COVERAGES = (0.3, 0.5, 0.7, 0.9)       # one mask below 40 % (skipped), one per group
@@ -38,29 +36,24 @@ def simple_mask_bank(n, h=64, w=128, seed=0, **_):
     return out
 
 
-def _auto_exposure(hdr):
-    lum = np.asarray(hdr) @ np.array([0.2126, 0.7152, 0.0722])
-    return float(0.18 / np.exp(np.log(lum + 1e-4).mean()))
 
 
 @pytest.fixture
 def pano_data(monkeypatch):
-    """The real pano_data with the simple mask provider (a stub module if it is missing)."""
-    try:
-        mod = importlib.import_module("comgs_dr.lighting.pano_data")
-    except ImportError:
-        mod = types.ModuleType("comgs_dr.lighting.pano_data")
-        mod.auto_exposure = _auto_exposure
-        monkeypatch.setitem(sys.modules, "comgs_dr.lighting.pano_data", mod)
-    monkeypatch.setattr(mod, "mask_bank", simple_mask_bank, raising=False)
+    """The real mask module with the simple mask provider."""
+    mod = importlib.import_module("comgs_dr.data.pano_masks")
+    monkeypatch.setattr(mod, "mask_bank", simple_mask_bank)
     return mod
 
 
 def test_lighting_eval_smoke(tmp_path, pano_data, variant, capsys):
     import torch
 
-    from comgs_dr.lighting.completion import (CompletionConfig, CompletionNet,
-                                              save_weights)
+    from comgs_dr.lighting.completion import (
+        CompletionConfig,
+        CompletionNet,
+        save_weights,
+    )
     from comgs_dr.lighting.envmap import write_exr
     maps = tmp_path / "maps"
     d = equirect_directions(16, 32)

@@ -4,9 +4,12 @@ from math import pi
 import numpy as np
 import pytest
 
+from comgs_dr.core.equirect import (
+    equirect_dir_to_uv_np,
+    equirect_directions,
+    pixel_solid_angles,
+)
 from comgs_dr.eval import lighting_metrics as lm
-from comgs_dr.lighting.envmap import equirect_dir_to_uv_np
-from comgs_dr.lighting.hdr import equirect_directions, pixel_solid_angles
 
 
 def smooth_map(h=64):
@@ -197,7 +200,8 @@ class TestSpheres:
     def test_numpy_ggx_matches_project_brdf(self, variant, rng):
         """ggx_specular_np reproduces lighting.brdf.eval_brdf_split (float32 Dr.Jit)."""
         import mitsuba as mi
-        from comgs_dr.lighting import brdf
+
+        from comgs_dr.shading import brdf
         k = 500
         wo, wi = rng.normal(size=(k, 3)), rng.normal(size=(k, 3))
         wo[:, 2], wi[:, 2] = np.abs(wo[:, 2]), np.abs(wi[:, 2])

@@ -4,7 +4,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from comgs_dr.sops import octahedral as octa
+from comgs_dr.core import octahedral as octa
 
 
 def _unit(rng, n):

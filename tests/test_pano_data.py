@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 import torch
 
+from comgs_dr.core import colorspace, equirect
+from comgs_dr.data import pano_masks
 from comgs_dr.lighting import completion as C
 from comgs_dr.lighting import pano_data as P
 from comgs_dr.lighting.envmap import write_exr
@@ -13,12 +15,12 @@ from comgs_dr.lighting.hdr import area_resize_equirect
 
 
 def _power(img):
-    return (img * P.solid_angle_image(*img.shape[:2])[..., None]).sum((0, 1))
+    return (img * equirect.solid_angle_image(*img.shape[:2])[..., None]).sum((0, 1))
 
 
 def test_solid_angles_sum_to_4pi():
-    assert P.solid_angle_image(16, 32).shape == (16, 32)
-    assert abs(P.solid_angle_image(16, 32).sum() - 4 * np.pi) < 1e-9
+    assert equirect.solid_angle_image(16, 32).shape == (16, 32)
+    assert abs(equirect.solid_angle_image(16, 32).sum() - 4 * np.pi) < 1e-9
 
 
 def test_area_resize_preserves_power_of_a_tiny_sun():
@@ -78,7 +80,7 @@ def test_sunsky_panorama_has_sky_sun_and_ground():
     for _ in range(4):
         img = P.sunsky_panorama(rng, 32, 64)
         assert img.shape == (32, 64, 3) and np.isfinite(img).all() and img.min() >= 0
-        lum = img @ P.LUMA
+        lum = img @ colorspace.LUMA
         assert lum[:16].mean() > 0 and lum[16:].mean() > 0          # sky and lit ground
         found_sun += lum.max() > 100 * np.median(lum)
     assert found_sun >= 2                                             # 85 % of skies have a sun
@@ -87,18 +89,18 @@ def test_sunsky_panorama_has_sky_sun_and_ground():
 def test_room_panorama_is_lit_by_emitters():
     img = P.room_panorama(np.random.default_rng(5), 16, 32, spp=4)
     assert img.shape == (16, 32, 3) and np.isfinite(img).all() and img.min() >= 0
-    lum = img @ P.LUMA
+    lum = img @ colorspace.LUMA
     assert lum.max() > 5 * np.median(lum) > 0
 
 
 def test_mask_bank_masks_and_normals():
-    masks = P.mask_bank(4, 16, 32, seed=2, n_surfels=4000, points_per_scene=2)
+    masks = pano_masks.mask_bank(4, 16, 32, seed=2, n_surfels=4000, points_per_scene=2)
     assert len(masks) == 4
     for m in masks:
         a, n = m["alpha"], m["normal"]
         assert a.shape == (16, 32) and n.shape == (16, 32, 3)
         assert a.min() >= 0 and a.max() <= 1 + 1e-6
-        sa = P.solid_angle_image(16, 32)
+        sa = equirect.solid_angle_image(16, 32)
         assert abs((a * sa).sum() / sa.sum() - m["coverage"]) < 1e-3
         cov = a > 0.5
         np.testing.assert_allclose(np.linalg.norm(n[cov], axis=-1), 1.0, atol=1e-3)
@@ -108,7 +110,7 @@ def test_mask_bank_masks_and_normals():
 def test_completion_loss_zero_at_target_and_normalised():
     t = torch.rand(2, 3, 16, 32)
     assert P is not None
-    from comgs_dr.lighting.train_completion import completion_loss
+    from comgs_dr.stages.train_completion import completion_loss
     assert completion_loss(t, t, 16, 32).item() == 0.0
     # the same relative error weighs the same on a dark (EV -5) and a bright target
     dark, bright = t * 0.01, t
@@ -118,7 +120,7 @@ def test_completion_loss_zero_at_target_and_normalised():
 
 
 def test_completion_loss_lowfreq_terms_see_colour_casts_not_zero_mean_noise():
-    from comgs_dr.lighting.train_completion import completion_loss
+    from comgs_dr.stages.train_completion import completion_loss
     t = torch.rand(2, 3, 16, 32) + 0.5
     checker = ((torch.arange(16)[:, None] + torch.arange(32)[None]) % 2 * 2 - 1).float()  # ±1
     noise, cast = t + 0.1 * checker, t + 0.1
@@ -135,7 +137,7 @@ def test_completion_loss_lowfreq_terms_see_colour_casts_not_zero_mean_noise():
 
 
 def test_lr_schedule_follows_the_time_fraction():
-    from comgs_dr.lighting.train_completion import TrainCompletionConfig, _lr
+    from comgs_dr.stages.train_completion import TrainCompletionConfig, _lr
     cfg = TrainCompletionConfig(lr=1e-3, warmup=10)
     assert _lr(0, 0.0, cfg) == pytest.approx(1e-4)
     lrs = [_lr(100, f, cfg) for f in np.linspace(0, 1, 11)]
@@ -156,7 +158,11 @@ def test_interior_colours_are_valid_and_not_all_grey():
 
 @pytest.fixture(scope="module")
 def tiny_training(tmp_path_factory):
-    from comgs_dr.lighting.train_completion import TrainCompletionConfig, build_data, train
+    from comgs_dr.stages.train_completion import (
+        TrainCompletionConfig,
+        build_data,
+        train,
+    )
     d = tmp_path_factory.mktemp("tc")
     maps = d / "maps"
     maps.mkdir()
@@ -180,7 +186,7 @@ def test_training_data_excludes_held_out_maps(tiny_training):
 
 
 def test_sampler_batches(tiny_training):
-    from comgs_dr.lighting.train_completion import Sampler
+    from comgs_dr.stages.train_completion import Sampler
     cfg, _, data = tiny_training
     s = Sampler(data, cfg, 0)
     rgb, nor, msk, tgt, evs, lab = s.batch(6, "ev")

@@ -5,9 +5,13 @@ import logging
 import numpy as np
 import pytest
 
-from comgs_dr.integrators.panorama import (PanoramaConfig, coverage, pixel_directions,
-                                           trace_panorama)
-from comgs_dr.lighting.envmap import equirect_dir_to_uv_np, equirect_uv_to_dir_np
+from comgs_dr.core.equirect import (
+    coverage,
+    equirect_dir_to_uv_np,
+    equirect_uv_to_dir_np,
+    pixel_directions,
+)
+from comgs_dr.surfels.panorama import PanoramaConfig, trace_panorama
 
 W, H = 64, 32
 CENTRE = np.array([0.1, -0.05, 0.2])
@@ -15,7 +19,7 @@ CENTRE = np.array([0.1, -0.05, 0.2])
 
 def _scene(parts):
     """gbuffer scene (no sensors) from {id: SurfelParams}."""
-    from comgs_dr.cameras import gbuffer_scene
+    from comgs_dr.surfels.scene import gbuffer_scene
     return gbuffer_scene(parts, [], targets="weight")
 
 
@@ -25,6 +29,7 @@ def _pixel_dirs(w=W, h=H):
 
 def _sphere(radius, centre, n, subdiv=4, colour=None, seed=0):
     import trimesh
+
     from comgs_dr.surfels.from_mesh import from_mesh
     m = trimesh.creation.icosphere(subdivisions=subdiv, radius=radius)
     m.apply_translation(centre)
@@ -35,6 +40,7 @@ def _sphere(radius, centre, n, subdiv=4, colour=None, seed=0):
 
 def _ground(half=2.0, n=3000, seed=1):
     import trimesh
+
     from comgs_dr.surfels.from_mesh import from_mesh
     v = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]], float)
     m = trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3]], process=False)
@@ -101,6 +107,7 @@ def test_closed_sphere_coverage_depth_normal_colour(closed_sphere):
 
 def test_closed_box_depths():
     import trimesh
+
     from comgs_dr.surfels.from_mesh import from_mesh
     h = np.array([0.6, 0.4, 0.3])                           # half extents
     box = trimesh.creation.box(extents=2 * h)
@@ -208,7 +215,7 @@ def test_errors_and_empty(caplog):
     # two tiny surfels between pixel rays: no coverage -> returned, warned
     tiny = _scene({"patches": _patches([((1.0, 0.37, 0.2), [1, 1, 1], 1e-3),
                                         ((-1.0, -0.41, -0.3), [1, 1, 1], 1e-3)])})
-    with caplog.at_level(logging.WARNING, logger="comgs_dr.integrators.panorama"):
+    with caplog.at_level(logging.WARNING, logger="comgs_dr.surfels.panorama"):
         out = trace_panorama(tiny, np.zeros(3), cfg)
     assert out["meta"]["coverage"] == 0.0
     assert np.all(out["alpha"] == 0) and np.all(out["rgb"] == 0) and np.all(out["depth"] == 0)

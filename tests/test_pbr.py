@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from comgs_dr.lighting.envmap import OctEnvmap
-from comgs_dr.lighting.shade import (NoVisibility, ShadingConfig, ShadingPoints,
-                                     SopVisibility, TraceVisibility, shade)
+from comgs_dr.shading.shade import ShadingConfig, ShadingPoints, shade
+from comgs_dr.shading.visibility import NoVisibility, SopVisibility, TraceVisibility
 
 
 def _v(a):
@@ -58,6 +58,7 @@ def test_extremes_are_finite():
 
 def _sphere_over_plane(n=6000, seed=0):
     import trimesh
+
     from comgs_dr.surfels.from_mesh import from_mesh
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
     sphere.apply_translation([0, 0, 0.45])
@@ -79,9 +80,9 @@ def _analytic_sphere_occlusion(x, d, c=(0, 0, 0.45), R=0.3):
 def sop_scene():
     """Sphere over a plane as surfels, and a 13×13 grid of probes just above the plane,
     baked by tracing (2×2 rays per texel)."""
-    from comgs_dr.cameras import gbuffer_scene
     from comgs_dr.sops.bake import bake
     from comgs_dr.sops.probes import ProbeSet
+    from comgs_dr.surfels.scene import gbuffer_scene
     params = _sphere_over_plane()
     scene = gbuffer_scene({"surfels": params}, [], targets="weight")
     g = np.linspace(-0.6, 0.6, 13)
@@ -94,7 +95,7 @@ def sop_scene():
 
 
 def test_traced_occlusion_matches_analytic(sop_scene, rng):
-    from comgs_dr.integrators.visibility import trace_visibility_np
+    from comgs_dr.surfels.trace import trace_visibility_np
     _, scene, _ = sop_scene
     m = 3000
     x = np.c_[rng.uniform(-0.3, 0.3, (m, 2)), np.full(m, 0.01)]
@@ -111,8 +112,8 @@ def test_traced_occlusion_matches_analytic(sop_scene, rng):
 def test_sop_occlusion_close_to_traced(sop_scene, rng):
     """Probes on a grid above the plane, baked by tracing; their interpolated occlusion at
     plane points approximates the traced occlusion (paper: SOPs cache occlusion)."""
-    from comgs_dr.integrators.visibility import trace_visibility_np
     from comgs_dr.sops.query import ProbeGrid
+    from comgs_dr.surfels.trace import trace_visibility_np
     _, scene, probes = sop_scene
     pos = probes.positions
     m = 400
@@ -214,9 +215,11 @@ def test_gradients_materials_env_and_atlas(rng):
 
 def test_cached_blend_matches_rendered_material_buffers(rng):
     """Fast path (cached hit weights + gathers) vs the reference mi.render G-buffer."""
-    from comgs_dr.cameras import gbuffer_scene, perspective
-    from comgs_dr.integrators.pbr import DeferredPbr
     from conftest import random_surfels
+
+    from comgs_dr.core.cameras import perspective
+    from comgs_dr.shading.deferred import DeferredPbr
+    from comgs_dr.surfels.scene import gbuffer_scene
     params = random_surfels(rng, n=300, extent=0.4, scale=(0.05, 0.15))
     scene = gbuffer_scene({"surfels": params}, [perspective((0.3, -2.0, 1.0), res=32)],
                           targets="weight")
@@ -243,11 +246,12 @@ def test_cached_blend_matches_rendered_material_buffers(rng):
 
 def test_sop_pbr_plugin_renders_from_files(tmp_path, rng):
     """The Mitsuba plugin: env map + probe files, sops / trace / none, clear errors."""
-    from comgs_dr.cameras import perspective
+    from conftest import error_chain_text
+
+    from comgs_dr.core.cameras import perspective
     from comgs_dr.sops.bake import bake
     from comgs_dr.sops.probes import ProbeSet
     from comgs_dr.surfels.shape import SurfelShapeBase
-    from conftest import error_chain_text
     params = _sphere_over_plane(n=3000)
     env_path = OctEnvmap(rng.uniform(0.2, 1.0, (8, 8, 3))).save(tmp_path / "env.exr")
     shape = SurfelShapeBase.from_params(params, id="obj")

@@ -8,14 +8,13 @@ expected pixel), to 0.5 px (the actual errors are ~1e-4 px, float32).
 """
 import json
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 import pytest
 from PIL import Image
 
-import drjit as dr
-import mitsuba as mi
-
-from comgs_dr.recon import data as D
+from comgs_dr.data import load as D
 
 TOL_PX = 0.5
 X_TEST = np.array([[0.3, -0.2, 0.25], [-0.4, 0.1, -0.3], [0.0, 0.0, 0.0]])  # [3, 3] world
@@ -167,7 +166,7 @@ def test_nerf_holdout_and_max_views(tmp_path, rng):
 def test_generator_dataset_roundtrip(tmp_path):
     """A dataset from comgs_dr.eval.synthetic loads with the cameras it recorded."""
     trimesh = pytest.importorskip("trimesh")
-    from comgs_dr.eval import synthetic as syn
+    from comgs_dr.data import synthetic as syn
     trimesh.creation.icosphere(subdivisions=1, radius=0.7).export(tmp_path / "ball.ply")
     mi.Bitmap(np.full((8, 16, 3), 0.8, np.float32)).write(str(tmp_path / "sky.exr"))
     cfg = syn.ObjectDatasetConfig(mesh=tmp_path / "ball.ply", envmap=tmp_path / "sky.exr",
@@ -191,7 +190,7 @@ def test_generator_sfm_points_are_visible_surface_points(tmp_path):
     """``sfm_points``: points3d.ply with surface points that >= 2 training cameras see
     (on a convex ball: in front of >= 2 cameras' tangent planes), read by the NeRF loader."""
     trimesh = pytest.importorskip("trimesh")
-    from comgs_dr.eval import synthetic as syn
+    from comgs_dr.data import synthetic as syn
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.7)
     ball.export(tmp_path / "ball.ply")
     mi.Bitmap(np.full((8, 16, 3), 0.8, np.float32)).write(str(tmp_path / "sky.exr"))
@@ -216,7 +215,7 @@ def test_generator_sfm_points_are_visible_surface_points(tmp_path):
 
 
 def test_bad_points_ply(nerf):
-    from comgs_dr.eval.sfm_points import write_points_ply
+    from comgs_dr.data.sfm_points import write_points_ply
     write_points_ply(nerf / "points3d.ply", np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [np.nan, 0, 0]]))
     _raises(lambda: D.load_nerf_synthetic(nerf), nerf / "points3d.ply", "non-finite")
     (nerf / "points3d.ply").write_bytes(b"ply\nformat ascii 1.0\nelement face 0\nend_header\n")

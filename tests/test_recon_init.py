@@ -1,13 +1,13 @@
 """Initialisation helpers of reconstruction step 1."""
 import types
 
+import mitsuba as mi
 import numpy as np
 import pytest
 
-import mitsuba as mi
-
-from comgs_dr import cameras
-from comgs_dr.recon import init as I
+from comgs_dr.core import cameras
+from comgs_dr.data.types import project
+from comgs_dr.train import init as I
 
 
 def _cam(origin, target, w=40, h=30, fov=50.0):
@@ -24,7 +24,7 @@ def test_projection_matches_mitsuba_rays(rng):
                                mi.Point2f(0.5))
     t = rng.uniform(1, 4, 50)
     pts = np.asarray(ray.o).T + np.asarray(ray.d).T * t[:, None]
-    x, y, ok = I.project(cam, pts)
+    x, y, ok = project(cam, pts)
     assert ok.all()
     np.testing.assert_allclose(np.c_[x, y], px, atol=1e-3)
 
@@ -59,8 +59,8 @@ def test_bad_points_are_refused(rng):
 
 
 def test_pca_normals_of_a_sphere_shell_point_outwards(rng):
-    from comgs_dr.recon.init import pca_normal_quaternions
     from comgs_dr.surfels.io import quat_to_matrix
+    from comgs_dr.train.init import pca_normal_quaternions
     d = rng.normal(size=(4000, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     pts = 0.8 * d + rng.normal(0, 0.005, d.shape) + [0.3, -0.2, 0.1]   # a thin noisy shell
@@ -79,7 +79,7 @@ def test_frustum_points_lie_where_most_cameras_look(rng):
              for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)]
     pts = I.frustum_points(views, 1500, np.zeros(3), 3.3, rng)
     assert pts.shape == (1500, 3) and pts.dtype == np.float32
-    seen = sum(I.project(v.camera, pts)[2].astype(int) for v in views)
+    seen = sum(project(v.camera, pts)[2].astype(int) for v in views)
     assert seen.min() >= 4
     cams = np.array([v.camera.to_world[:3, 3] for v in views])
     near = np.linalg.norm(pts[:, None] - cams[None], axis=-1).min(1)

@@ -3,14 +3,14 @@ of the 3DGS SSIM, gradients (autograd reference, central differences), depth→n
 on analytic surfaces, degenerate inputs and shape errors. Images ≤ 32×32."""
 import math
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 import pytest
 
-import drjit as dr
-import mitsuba as mi
-
-from comgs_dr import cameras
-from comgs_dr.recon import losses as L
+from comgs_dr.core import cameras
+from comgs_dr.surfels.scene import gbuffer_scene
+from comgs_dr.train import losses as L
 
 torch = pytest.importorskip("torch")
 F = torch.nn.functional
@@ -209,7 +209,7 @@ def test_camera_rays_through_pixel_centres_with_principal_point():
     s["principal_point_offset_x"] = 0.15
     s["principal_point_offset_y"] = -0.1
     sensor = mi.load_dict(s)
-    d, o = L.camera_rays(sensor)
+    d, o = cameras.camera_rays(sensor)
     assert tuple(d.shape) == (8, 12, 3) and tuple(o.shape) == (8, 12, 3)
     dn, on = np.array(d), np.array(o)
     np.testing.assert_allclose(np.linalg.norm(dn, axis=-1), 1, atol=1e-6)
@@ -225,7 +225,7 @@ def test_camera_rays_through_pixel_centres_with_principal_point():
     uv = np.array(ds.uv).T.reshape(8, 12, 2)
     yy, xx = np.mgrid[0:8, 0:12]
     np.testing.assert_allclose(uv, np.stack([xx + 0.5, yy + 0.5], -1), atol=1e-3)
-    d2, _ = L.camera_rays(s, 12, 8)                                       # dict + explicit size
+    d2, _ = cameras.camera_rays(s, 12, 8)                                       # dict + explicit size
     np.testing.assert_allclose(np.array(d2), dn, atol=1e-6)
 
 
@@ -239,7 +239,7 @@ def _angle_deg(a, b):
 def _plane_setup(ppo=0.0, res=(32, 24)):
     s = cameras.perspective([2.0, -2.5, 2.0], target=[0.1, 0.2, 0.0], res=res, fov=50)
     s["principal_point_offset_x"] = ppo
-    d, o = L.camera_rays(s)
+    d, o = cameras.camera_rays(s)
     n = np.array([0.2, -0.1, 1.0])
     n /= np.linalg.norm(n)
     p0 = np.array([0.0, 0.0, -0.1])
@@ -273,7 +273,7 @@ def test_depth_to_normal_plane(ppo):
 
 def _sphere_setup(res=32, center=(0.2, 0.1, -0.1), R=1.0):
     s = cameras.perspective([0.4, -2.6, 0.7], target=[0.0, 0.0, 0.0], res=res, fov=50)
-    d, o = L.camera_rays(s)
+    d, o = cameras.camera_rays(s)
     dn, on = np.array(d, dtype=np.float64), np.array(o, dtype=np.float64)
     oc = on - np.asarray(center)
     bq = (oc * dn).sum(-1)
@@ -457,7 +457,7 @@ def test_extreme_rgb_inputs(pair, rng):
 # ------------------------------------------------------------------ shape errors
 def test_shape_mismatches_raise_value_error():
     a3, b3 = _t(np.zeros((8, 8, 3))), _t(np.zeros((8, 7, 3)))
-    d, o = L.camera_rays(cameras.perspective([0, -3, 0], res=8))
+    d, o = cameras.camera_rays(cameras.perspective([0, -3, 0], res=8))
     one = _t(np.ones((8, 8, 1)))
     cases = [
         (lambda: L.l1(a3, b3), "same shape"),
@@ -473,7 +473,7 @@ def test_shape_mismatches_raise_value_error():
         (lambda: L.d2n_loss(_t(np.zeros((8, 8, 2))), one, one, d, o), "channel"),
         (lambda: L.d2n_loss(a3, one, _t(np.ones((6, 8))), d, o), "same shape"),
         (lambda: L.ssim(a3, a3, window=4), "odd"),
-        (lambda: L.camera_rays(cameras.perspective([0, -3, 0], res=8), 8), "both"),
+        (lambda: cameras.camera_rays(cameras.perspective([0, -3, 0], res=8), 8), "both"),
     ]
     for fn, msg in cases:
         with pytest.raises(ValueError, match=msg.replace("[", r"\[").replace("]", r"\]")):
@@ -528,10 +528,10 @@ def test_d2n_on_rendered_surfel_plane():
         log_scales=np.full((n, 2), np.log(0.1)), opacity_logit=np.full(n, 4.0),
         sh=np.full((n, 1, 3), 0.3))
     sensor = cameras.perspective([0.8, -1.6, 2.0], target=[0, 0, 0], res=16, fov=40)
-    scene = cameras.gbuffer_scene(params, sensor, max_hits=16,
+    scene = gbuffer_scene(params, sensor, max_hits=16,
                                   targets="color,weight,depth_unbiased,normal")
     bufs = scene.integrator().split(mi.render(scene))
-    d, o = L.camera_rays(scene.sensors()[0])
+    d, o = cameras.camera_rays(scene.sensors()[0])
     nd, valid = L.depth_to_normal(bufs["depth_unbiased"], d, o, weight=bufs["weight"],
                                   min_weight=0.9, return_valid=True)
     nd = np.array(nd)[np.array(valid).reshape(16, 16)]

@@ -1,17 +1,14 @@
 """Reconstruction step 1 end to end on a tiny synthetic object: improvement, resume, stability."""
 import json
 
+import mitsuba as mi
 import numpy as np
 import pytest
 
-import drjit as dr
-import mitsuba as mi
-
 from comgs_dr import cli
-from comgs_dr.recon import checkpoint as ck
-from comgs_dr.recon.data import load_dataset
-from comgs_dr.recon.train_radiance import RadianceConfig, Trainer, train_radiance
-from conftest import error_chain_text
+from comgs_dr.data.load import load_dataset
+from comgs_dr.stages.reconstruct import RadianceConfig, Trainer, train_radiance
+from comgs_dr.train import checkpoint as ck
 
 trimesh = pytest.importorskip("trimesh")
 
@@ -19,7 +16,7 @@ trimesh = pytest.importorskip("trimesh")
 @pytest.fixture(scope="module")
 def tiny_dataset(tmp_path_factory):
     """A two-coloured capsule under a sky with a bright spot: 16 train + 4 test views, 32 px."""
-    from comgs_dr.eval import synthetic as syn
+    from comgs_dr.data import synthetic as syn
     root = tmp_path_factory.mktemp("tiny")
     trimesh.creation.capsule(height=0.8, radius=0.45).export(root / "obj.ply")
     sky = np.full((16, 32, 3), 0.6, np.float32)
@@ -122,7 +119,7 @@ def test_cli_errors_name_the_path(tmp_path, capsys):
 
 
 def test_scaled_density_schedule_and_preset_defaults():
-    from comgs_dr.recon.train_radiance import RadianceConfig, scaled_density_schedule
+    from comgs_dr.stages.reconstruct import RadianceConfig, scaled_density_schedule
     assert scaled_density_schedule(1500) == {"stop": 750, "opacity_reset_interval": 375}
     assert scaled_density_schedule(1) == {"stop": 1, "opacity_reset_interval": 1}
     for preset, cap in (("object", 0.01), ("scene", 0.02)):

@@ -1,16 +1,16 @@
 """The `surfels` shape: XML loading, parameter exposure, resizing, degenerate surfels."""
 import os
 
-import numpy as np
-import pytest
-
 import drjit as dr
 import mitsuba as mi
-
-from comgs_dr import cameras
-from comgs_dr.surfels import SurfelParams, save_ply
-from comgs_dr.surfels.shape import SurfelShapeBase, is_surfel_shape
+import numpy as np
+import pytest
 from conftest import error_chain_text, random_surfels
+
+from comgs_dr.core import cameras
+from comgs_dr.surfels import SurfelParams, save_ply
+from comgs_dr.surfels.scene import gbuffer_scene
+from comgs_dr.surfels.shape import is_surfel_shape
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 XML = os.path.join(ROOT, "scenes", "gbuffer_object.xml")
@@ -42,7 +42,7 @@ def test_xml_missing_file_is_a_clear_error(tmp_path):
 
 
 def test_parameters_are_exposed_and_differentiable(rng):
-    scene = cameras.gbuffer_scene({"obj": random_surfels(rng, n=20)}, cameras.perspective([0, -3, 0], res=8))
+    scene = gbuffer_scene({"obj": random_surfels(rng, n=20)}, cameras.perspective([0, -3, 0], res=8))
     params = mi.traverse(scene)
     for f in FIELDS:
         key = f"obj.{f}"
@@ -52,7 +52,7 @@ def test_parameters_are_exposed_and_differentiable(rng):
 
 def test_update_moves_geometry_and_changes_count(rng):
     p1 = random_surfels(rng, n=30)
-    scene = cameras.gbuffer_scene({"obj": p1}, cameras.perspective([0, -3, 0], res=16), targets="weight")
+    scene = gbuffer_scene({"obj": p1}, cameras.perspective([0, -3, 0], res=16), targets="weight")
     params = mi.traverse(scene)
     w1 = np.array(mi.render(scene))[..., 3]
     shape = scene.shapes()[0]
@@ -97,7 +97,7 @@ def _degenerate_params(rng):
 
 def test_degenerate_surfels_give_finite_buffers_and_gradients(rng):
     params = _degenerate_params(rng)
-    scene = cameras.gbuffer_scene({"obj": params}, cameras.perspective([0, -2, 0.1], res=16, fov=60),
+    scene = gbuffer_scene({"obj": params}, cameras.perspective([0, -2, 0.1], res=16, fov=60),
                                   max_hits=16)
     assert scene.shapes()[0].nonfinite_count == 3
     mp = mi.traverse(scene)

@@ -5,9 +5,12 @@ import json
 
 import numpy as np
 import pytest
-from comgs_dr.lighting import backends, completion as C, pano_data as P
-from comgs_dr.lighting.hdr import expose, fuse_brackets
 
+from comgs_dr.data import pano_masks
+from comgs_dr.lighting import backends
+from comgs_dr.lighting import completion as C
+from comgs_dr.lighting import pano_data as P
+from comgs_dr.lighting.hdr import expose, fuse_brackets
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -34,7 +37,7 @@ def samples():
     rng = np.random.default_rng(987654)
     maps = [P.sunsky_panorama(rng, 64, 128) for _ in range(3)] + \
            [P.room_panorama(rng, 64, 128, spp=16, seed=99) for _ in range(2)]
-    masks = P.mask_bank(5, 64, 128, seed=4242, n_surfels=12000, points_per_scene=3)
+    masks = pano_masks.mask_bank(5, 64, 128, seed=4242, n_surfels=12000, points_per_scene=3)
     out = []
     for m, mk in zip(maps, masks):
         gt = m * P.auto_exposure(m)

@@ -4,8 +4,14 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from comgs_dr.sops.query import (BACKFACE_FLOOR, EPS_REL, ProbeGrid, brute_force_query,
-                                 interpolate, query)
+from comgs_dr.sops.query import (
+    BACKFACE_FLOOR,
+    EPS_REL,
+    ProbeGrid,
+    brute_force_query,
+    interpolate,
+    query,
+)
 
 
 def to_mi(pts, normals):

@@ -1,10 +1,9 @@
 """Probe files, texel ray sets, farthest point sampling and automatic placement."""
-import json
 
 import numpy as np
 import pytest
 
-from comgs_dr.sops import octahedral as octa
+from comgs_dr.core import octahedral as octa
 from comgs_dr.sops.bake import texel_directions
 from comgs_dr.sops.placement import PlacementConfig, farthest_points, place_probes
 from comgs_dr.sops.probes import ProbeSet
@@ -81,8 +80,9 @@ def test_farthest_points_spread_better_than_random(rng):
 def test_placement_on_a_surfel_sphere(rng):
     """Probes land on the fused surface, offset outwards by offset_frac × size."""
     import trimesh
-    from comgs_dr.eval.synthetic import look_at
-    from comgs_dr.recon.data_types import Camera
+
+    from comgs_dr.data.synthetic import look_at
+    from comgs_dr.data.types import Camera
     from comgs_dr.surfels.from_mesh import from_mesh
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
     params = from_mesh(sphere, 3000, seed=0, opacity=0.99)

@@ -6,13 +6,12 @@ synthetic env maps written here; tests marked by ``needs_shared`` use /work/shar
 import json
 from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
 import pytest
 
-import mitsuba as mi
-
 from comgs_dr import cli
-from comgs_dr.eval import synthetic as syn
+from comgs_dr.data import synthetic as syn
 
 RES = 16
 SHARED = syn.shared_data_dir()

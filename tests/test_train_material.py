@@ -10,10 +10,11 @@ import pytest
 def tiny_run(tmp_path_factory):
     """A 32 px dataset of the demo object + mesh-sampled surfels as a step-1 run."""
     import trimesh
+
+    from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
     from comgs_dr.demo import procedural_object, procedural_sky
-    from comgs_dr.eval.synthetic import ObjectDatasetConfig, make_object_dataset
-    from comgs_dr.recon.render_run import write_run_info
     from comgs_dr.surfels import from_mesh, save_ply
+    from comgs_dr.train.run import write_run_info
     root = tmp_path_factory.mktemp("step2")
     mesh = procedural_object(root / "object.ply")
     sky = procedural_sky(root / "sky.exr", width=64)
@@ -32,7 +33,7 @@ def tiny_run(tmp_path_factory):
 
 
 def _cfg(**kw):
-    from comgs_dr.recon.train_material import MaterialConfig
+    from comgs_dr.stages.decompose import MaterialConfig
     base = dict(iterations=40, rays=16, env_res=16, probe_count=150, probe_res=8,
                 eval_every=40, eval_views=2, log_every=5, checkpoint_every=20)
     base.update(kw)
@@ -40,7 +41,7 @@ def _cfg(**kw):
 
 
 def test_decompose_with_sops_improves_fit_and_writes_outputs(tiny_run):
-    from comgs_dr.recon.train_material import MaterialTrainer, train_material
+    from comgs_dr.stages.decompose import MaterialTrainer, train_material
     run, _ = tiny_run
     out = run / "mat_sops"
     before = MaterialTrainer(run, out, _cfg(), progress=False).evaluate()["psnr_test"]
@@ -63,7 +64,7 @@ def test_decompose_with_sops_improves_fit_and_writes_outputs(tiny_run):
 
 
 def test_resume_continues_from_checkpoint(tiny_run):
-    from comgs_dr.recon.train_material import MaterialTrainer, train_material
+    from comgs_dr.stages.decompose import MaterialTrainer, train_material
     run, _ = tiny_run
     out = run / "mat_resume"
     train_material(run, out, _cfg(iterations=20, eval_every=20), progress=False)
@@ -76,8 +77,8 @@ def test_resume_continues_from_checkpoint(tiny_run):
 
 
 def test_trace_variant_and_relight(tiny_run):
-    from comgs_dr.recon.relight import relight_run
-    from comgs_dr.recon.train_material import train_material
+    from comgs_dr.stages.decompose import train_material
+    from comgs_dr.stages.relight import relight_run
     run, sky = tiny_run
     out = run / "mat_trace"
     s = train_material(run, out, _cfg(visibility="trace", iterations=10, eval_every=10),

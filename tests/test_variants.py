@@ -40,10 +40,11 @@ def test_plugins_follow_variant_switches():
         for v in ('llvm_ad_rgb', 'scalar_rgb', 'llvm_ad_rgb'):
             mi.set_variant(v)
         import numpy as np
-        from comgs_dr import cameras
+        from comgs_dr.core import cameras
+        from comgs_dr.surfels.scene import gbuffer_scene
         from comgs_dr.surfels import SurfelParams
         p = SurfelParams.from_numpy(np.zeros((1, 3)), [[1, 0, 0, 0]], [[0.0, 0.0]], [3.0], np.zeros((1, 1, 3)))
-        scene = cameras.gbuffer_scene(p, cameras.perspective([0, 0, 3], up=[0, 1, 0], res=8))
+        scene = gbuffer_scene(p, cameras.perspective([0, 0, 3], up=[0, 1, 0], res=8))
         img = mi.render(scene)
         print('WMAX', float(np.array(img)[..., 3].max()))
     """)

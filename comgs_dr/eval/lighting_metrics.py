@@ -53,9 +53,14 @@ from math import pi
 
 import numpy as np
 
-from ..lighting.brdf import ALPHA_MIN
-from ..lighting.envmap import equirect_dir_to_uv_np, sample_equirect_np
-from ..lighting.hdr import area_resize_equirect, equirect_directions, pixel_solid_angles
+from comgs_dr.core.equirect import (
+    equirect_dir_to_uv_np,
+    equirect_directions,
+    pixel_solid_angles,
+    sample_equirect_np,
+)
+from comgs_dr.lighting.hdr import area_resize_equirect
+from comgs_dr.shading.brdf import ALPHA_MIN, hammersley
 
 __all__ = ["MATERIALS", "ARRAY_AZIMUTHS", "SILVER_F0", "SILVER_ROUGHNESS", "DIFFUSE_ALBEDO",
            "area_resize_equirect", "sphere_geometry", "render_sphere", "render_spheres",
@@ -139,7 +144,6 @@ def specular_albedo_terms(roughness: float, n_mu: int = 256, n_samples: int = 20
     (mu [n_mu], A [n_mu], B [n_mu]) with ∫ f_spec cos_i dω_i = F0·A + (1 − F0)·B,
     A = ∫ D G2/(4 cos_o) dω, B = ∫ (1 − ω_o·h)⁵ D G2/(4 cos_o) dω. Hammersley points through
     GGX visible-normal sampling (Heitz 2018): weight G2/G1(ω_o), bounded by 1."""
-    from ..lighting.brdf import hammersley
     alpha = max(float(roughness) ** 2, ALPHA_MIN)
     mu = (np.arange(n_mu) + 0.5) / n_mu                                       # [M]
     u = hammersley(n_samples)                                                 # [N, 2]

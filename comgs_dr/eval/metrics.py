@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.ndimage import convolve1d
 
 
 def psnr(img: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> float:
@@ -15,7 +16,6 @@ def psnr(img: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> fl
 
 def ssim(img: np.ndarray, ref: np.ndarray, window: int = 11, sigma: float = 1.5) -> float:
     """Mean SSIM with a Gaussian window and zero padding (the 3DGS/2DGS evaluation code)."""
-    from scipy.ndimage import convolve1d
     x = np.clip(img[..., :3].astype(np.float64), 0, 1)
     y = ref[..., :3].astype(np.float64)
     g = np.exp(-((np.arange(window) - window // 2) ** 2) / (2 * sigma ** 2))

@@ -18,13 +18,19 @@ to HDR (``lighting.hdr.fuse_brackets``). Every backend here implements
 from __future__ import annotations
 
 import inspect
+import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from . import completion, hdr
-from .completion import DEFAULT_EVS, EV_MIN, CompletionBackend, NetworkBackend
+from comgs_dr.lighting import completion, hdr
+from comgs_dr.lighting.completion import (
+    DEFAULT_EVS,
+    EV_MIN,
+    CompletionBackend,
+    NetworkBackend,
+)
 
 __all__ = ["FILL_KINDS", "FillBackend", "DEFAULT_WEIGHTS", "load_network_backend",
            "DiffusersBackend", "check_inputs"]
@@ -238,7 +244,6 @@ class DiffusersBackend(CompletionBackend):
             if not (path / sub).is_dir():
                 raise FileNotFoundError(f"DiffusersBackend: {path} has no '{sub}/' folder "
                                         f"(expected the diffusers layout)")
-        import json
         kw = {"local_files_only": True}
         mkw = {**kw, "low_cpu_mem_usage": False}       # no 'accelerate' needed
         sched_cfg = json.loads((path / "scheduler" / "scheduler_config.json").read_text())

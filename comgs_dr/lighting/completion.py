@@ -38,6 +38,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from comgs_dr.lighting.hdr import push_pull_fill
+
 __all__ = ["FORMAT_VERSION", "DEFAULT_EVS", "EV_MIN", "LABELS", "SATURATION", "CompletionConfig",
            "SphericalPad2d", "SConv2d", "FiLM", "ResBlock", "GlobalContext", "EVEmbedding",
            "CompletionNet", "CompletionOutput", "blend_observed", "expose_ldr", "fill_prior",
@@ -344,7 +346,6 @@ class CompletionNet(nn.Module):
 def fill_prior(rgb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Push-pull fill (``hdr.push_pull_fill``) of each EV-0 panorama [B,3,H,W] with mask
     [B,1,H,W], as a constant input (no gradient); mid-grey where nothing is observed."""
-    from .hdr import push_pull_fill
     out = []
     for r, m in zip(rgb.detach().cpu().numpy(), mask.detach().cpu().numpy()):
         mm = m[0]

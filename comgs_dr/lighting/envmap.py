@@ -22,43 +22,19 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..sops import octahedral as octa
+from comgs_dr.core import octahedral as octa
+from comgs_dr.core.colorspace import LUMA
+from comgs_dr.core.equirect import (
+    equirect_dir_to_uv_np,
+    equirect_uv_to_dir_np,
+    sample_equirect_np,
+)
 
 LOG_RANGE = (-16.0, 16.0)    # clamp of log radiance: exp(±16) ≈ 1e-7 .. 9e6
-LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
 # ---------------------------------------------------------------------------------------
-# Equirect <-> direction (NumPy)
-
-def equirect_dir_to_uv_np(d):
-    """[N, 3] unit directions -> [N, 2] equirect uv (Blender Z-up convention)."""
-    d = np.asarray(d, np.float64)
-    u = (0.5 - np.arctan2(d[:, 1], d[:, 0]) / (2 * np.pi)) % 1.0
-    v = np.arccos(np.clip(d[:, 2], -1.0, 1.0)) / np.pi
-    return np.stack([u, v], -1)
-
-
-def equirect_uv_to_dir_np(uv):
-    uv = np.asarray(uv, np.float64)
-    phi = (0.5 - uv[:, 0]) * 2 * np.pi
-    theta = uv[:, 1] * np.pi
-    st = np.sin(theta)
-    return np.stack([st * np.cos(phi), st * np.sin(phi), np.cos(theta)], -1)
-
-
-def sample_equirect_np(img, uv):
-    """Bilinear lookup of an [H, W, C] equirect image at [N, 2] uv (wraps in u)."""
-    h, w = img.shape[:2]
-    x = uv[:, 0] * w - 0.5
-    y = np.clip(uv[:, 1] * h - 0.5, 0, h - 1)
-    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    x1, y1 = (x0 + 1) % w, np.minimum(y0 + 1, h - 1)
-    x0 %= w
-    return ((1 - fx) * (1 - fy) * img[y0, x0] + fx * (1 - fy) * img[y0, x1]
-            + (1 - fx) * fy * img[y1, x0] + fx * fy * img[y1, x1])
-
+# Equirect <-> octahedral (NumPy)
 
 def equirect_to_oct_np(img, res: int, sub: int = 4) -> np.ndarray:
     """Resample an [H, W, 3] equirect map to an [R, R, 3] octahedral map.
@@ -120,7 +96,6 @@ def read_envmap_file(path) -> tuple[np.ndarray, str]:
     otherwise from the shape (2:1 equirect; square maps are rejected as ambiguous).
     NaN/Inf or negative values raise ValueError naming the file and the count.
     """
-    from ..eval.synthetic_io import load_envmap
     p = Path(path)
     bmp = load_envmap(p)
     meta = mi.Bitmap(str(p)).metadata() if p.suffix.lower() == ".exr" else None
@@ -271,3 +246,29 @@ class EnvSampler:
         ty = dr.minimum(mi.UInt32(uv.y * r), r - 1)
         pmf = dr.gather(mi.Float, self.pmf, ty * r + tx)
         return pmf * (r * r) / octa.jacobian_uv(uv)
+
+
+def load_envmap(path):
+    """Read an HDR/EXR environment map as a float32 RGB ``mi.Bitmap``, checking its values.
+
+    FileNotFoundError if missing; ValueError if unreadable, not RGB(A), or holding NaN/Inf
+    or negative values (the message names the file and the count).
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"environment map not found: {p}")
+    try:
+        bmp = mi.Bitmap(str(p))
+    except Exception as e:  # Mitsuba raises RuntimeError with its own wording
+        raise ValueError(f"cannot read environment map {p}: {e}") from e
+    arr = np.array(bmp, copy=False)
+    if arr.ndim != 3 or arr.shape[2] not in (3, 4) or min(arr.shape[:2]) < 2:
+        raise ValueError(f"environment map {p} must be an RGB(A) image of at least 2x2 "
+                         f"pixels, got shape {arr.shape}")
+    bad = int(np.count_nonzero(~np.isfinite(arr[..., :3])))
+    if bad:
+        raise ValueError(f"environment map {p} has {bad} non-finite (NaN/Inf) values")
+    neg = int(np.count_nonzero(arr[..., :3] < 0))
+    if neg:
+        raise ValueError(f"environment map {p} has {neg} negative values")
+    return bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)

@@ -44,11 +44,11 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .envmap import LUMA, equirect_uv_to_dir_np
+from comgs_dr.core.colorspace import LUMA, as_float, is_torch, srgb_decode, srgb_encode
+from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
 
-
-__all__ = ["srgb_encode", "srgb_decode", "expose", "unexpose", "fuse_brackets",
-           "DEFAULT_EVS", "saturation_limit", "pixel_solid_angles", "equirect_directions",
+__all__ = ["expose", "unexpose", "fuse_brackets",
+           "DEFAULT_EVS", "saturation_limit",
            "label_equirect", "area_resize_equirect", "extract_lights", "real_sh_basis", "mean_fill",
            "push_pull_fill", "sh_fill"]
 
@@ -58,51 +58,24 @@ DEFAULT_EVS = (0.0, -2.5, -5.0)
 # ---------------------------------------------------------------------------------------
 # Exposure model (NumPy or torch)
 
-def _is_torch(x) -> bool:
-    """A torch tensor? (torch is optional and imported only when a tensor comes in.)"""
-    if type(x).__module__.split(".")[0] != "torch":
-        return False
-    import torch
-    return isinstance(x, torch.Tensor)
 
 
-def _prep(x):
-    """Tensor -> as is; anything else -> floating NumPy array (float32 kept)."""
-    if _is_torch(x):
-        return x
-    a = np.asarray(x)
-    return a if np.issubdtype(a.dtype, np.floating) else a.astype(np.float64)
 
 
-def _where(c, a, b):
-    if _is_torch(a):
-        import torch
-        return torch.where(c, a, b)
-    return np.where(c, a, b)
 
 
-def srgb_encode(x):
-    """Linear -> sRGB (no clamp above 1; the linear segment extends to negatives)."""
-    x = _prep(x)
-    hi = 1.055 * x.clip(0.0031308, None) ** (1.0 / 2.4) - 0.055   # clip: finite grads
-    return _where(x <= 0.0031308, 12.92 * x, hi)
 
 
-def srgb_decode(c):
-    """sRGB -> linear (inverse of ``srgb_encode``)."""
-    c = _prep(c)
-    hi = ((c.clip(0.04045, None) + 0.055) / 1.055) ** 2.4
-    return _where(c <= 0.04045, c / 12.92, hi)
 
 
 def expose(hdr, ev: float):
     """LDR panorama of linear radiance ``hdr`` at exposure ``ev``: clip(sRGB(hdr·2^ev), 0, 1)."""
-    return srgb_encode(_prep(hdr) * 2.0 ** float(ev)).clip(0.0, 1.0)
+    return srgb_encode(as_float(hdr) * 2.0 ** float(ev)).clip(0.0, 1.0)
 
 
 def unexpose(ldr, ev: float):
     """Radiance of an LDR panorama at exposure ``ev`` (exact inverse where ldr < 1)."""
-    return srgb_decode(_prep(ldr).clip(0.0, 1.0)) / 2.0 ** float(ev)
+    return srgb_decode(as_float(ldr).clip(0.0, 1.0)) / 2.0 ** float(ev)
 
 
 def saturation_limit(evs=DEFAULT_EVS) -> float:
@@ -113,7 +86,7 @@ def saturation_limit(evs=DEFAULT_EVS) -> float:
 def _lookup(ldrs: dict, ev: float):
     for key, val in ldrs.items():
         if abs(float(key) - float(ev)) < 1e-6:
-            return _prep(val)
+            return as_float(val)
     raise ValueError(f"fuse_brackets: no LDR panorama for EV {ev} (have {sorted(ldrs)})")
 
 
@@ -145,7 +118,7 @@ def fuse_brackets(ldrs: dict, evs=DEFAULT_EVS, sat: float = 0.95, width: float =
     for brighter, img, ev in zip(imgs[:-1], imgs[1:], evs[1:]):
         b = brighter.clip(0.0, 1.0)
         if measure == "max":
-            s = b.amax(-1) if _is_torch(b) else b.max(-1)
+            s = b.amax(-1) if is_torch(b) else b.max(-1)
         else:
             s = b[..., 0] * LUMA[0] + b[..., 1] * LUMA[1] + b[..., 2] * LUMA[2]
         t = ((s - (sat - width)) / width).clip(0.0, 1.0)
@@ -157,16 +130,8 @@ def fuse_brackets(ldrs: dict, evs=DEFAULT_EVS, sat: float = 0.95, width: float =
 # ---------------------------------------------------------------------------------------
 # Equirect geometry
 
-def pixel_solid_angles(h: int, w: int) -> np.ndarray:
-    """[H, 1] exact solid angle of each equirect pixel row (sums to 4π over the image)."""
-    edges = np.cos(np.linspace(0.0, pi, h + 1))
-    return ((edges[:-1] - edges[1:]) * (2.0 * pi / w))[:, None]
 
 
-def equirect_directions(h: int, w: int) -> np.ndarray:
-    """[H, W, 3] unit directions of the pixel centres (Blender Z-up equirect)."""
-    u, v = np.meshgrid((np.arange(w) + 0.5) / w, (np.arange(h) + 0.5) / h)
-    return equirect_uv_to_dir_np(np.stack([u.ravel(), v.ravel()], -1)).reshape(h, w, 3)
 
 
 def _overlap(edges_in, edges_out) -> np.ndarray:

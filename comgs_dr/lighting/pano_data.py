@@ -10,37 +10,37 @@ so the package makes its own:
   Lambertian ground and a procedural skyline lit by that sky; label outdoor) and
   ``room_panorama`` (a procedural room with ceiling lamps, bright windows and furniture, path
   traced by Mitsuba from a point inside; label indoor).
-* **Masks** (``mask_bank``): alpha and normals traced (``integrators.panorama``) from random
-  points in procedural surfel scenes (``from_mesh``: outdoor yards and rooms with missing
-  walls/ceilings), with the object's footprint excluded and surfels inside a random cone
-  (biased upwards) dropped, so masks have surfel edges and open upper hemispheres.
+* **Masks** live in :mod:`comgs_dr.data.pano_masks` (they are traced surfel panoramas).
 * ``auto_exposure``: the scale that puts a map's log-average luminance at the key 0.18
   (Reinhard), used by training and evaluation to set the EV-0 exposure of the "capture".
 """
 from __future__ import annotations
 
+import colorsys
 import logging
-from dataclasses import dataclass
-from pathlib import Path
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
-from .hdr import area_resize_equirect, equirect_directions
-from .hdr import pixel_solid_angles as _row_solid_angles
+from comgs_dr.core.colorspace import LUMA
+from comgs_dr.core.equirect import (
+    equirect_dir_to_uv_np,
+    equirect_directions,
+    pixel_directions,
+    solid_angle_image,
+)
+from comgs_dr.lighting.envmap import read_envmap_file
+from comgs_dr.lighting.hdr import area_resize_equirect
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LUMA", "auto_exposure", "solid_angle_image", "load_map", "sunsky_panorama",
-           "room_panorama", "mask_bank", "MaskSample", "rotate_u", "random_surfel_scene"]
+__all__ = ["auto_exposure", "load_map", "sunsky_panorama", "room_panorama", "rotate_u"]
 
-LUMA = np.array([0.2126, 0.7152, 0.0722])
 GENERATOR_VERSION = 2      # bump when a generator's output changes (training-data cache key)
 KEY = 0.18
 
 
-def solid_angle_image(h: int, w: int) -> np.ndarray:
-    """[h, w] solid angle of every equirect pixel (sums to 4π)."""
-    return np.broadcast_to(_row_solid_angles(h, w), (h, w))
 
 
 def auto_exposure(hdr: np.ndarray, key: float = KEY) -> float:
@@ -60,7 +60,6 @@ def auto_exposure(hdr: np.ndarray, key: float = KEY) -> float:
 
 def load_map(path, h: int, w: int) -> np.ndarray:
     """An equirect HDR file resampled to [h, w, 3] (``hdr.area_resize_equirect``: power kept)."""
-    from .envmap import read_envmap_file
     img, layout = read_envmap_file(path)
     if layout != "equirect":
         raise ValueError(f"{path}: an equirect map is needed, got layout {layout!r}")
@@ -78,7 +77,6 @@ def rotate_u(img: np.ndarray, shift: int) -> np.ndarray:
 def _splat_direction(img: np.ndarray, d: np.ndarray, power: np.ndarray) -> None:
     """Add ``power`` [3] (radiance × solid angle) at direction ``d`` to img [H, W, 3] with
     bilinear weights, dividing by each pixel's solid angle (energy preserving)."""
-    from .envmap import equirect_dir_to_uv_np
     H, W = img.shape[:2]
     uv = equirect_dir_to_uv_np(d[None])[0]
     x, y = uv[0] * W - 0.5, uv[1] * H - 0.5
@@ -93,8 +91,6 @@ def _splat_direction(img: np.ndarray, d: np.ndarray, power: np.ndarray) -> None:
 
 
 def _eval_emitter(emitter, dirs: np.ndarray) -> np.ndarray:
-    import drjit as dr
-    import mitsuba as mi
     si = dr.zeros(mi.SurfaceInteraction3f, len(dirs))
     d = (-dirs).astype(np.float32)
     si.wi = mi.Vector3f(d[:, 0], d[:, 1], d[:, 2])
@@ -125,7 +121,6 @@ def sunsky_panorama(rng: np.random.Generator, h: int = 64, w: int = 128) -> np.n
     """An outdoor HDR panorama [h, w, 3]: Hosek–Wilkie sky + sun (Mitsuba ``sunsky``, random
     elevation, turbidity, ground albedo), the sun disc added with its exact power, a ground
     and a skyline of random height lit by the sky (Lambert)."""
-    import mitsuba as mi
     elev = np.radians(rng.uniform(2.0, 75.0))
     az = rng.uniform(0, 2 * np.pi)
     sd = np.array([np.cos(elev) * np.cos(az), np.cos(elev) * np.sin(az), np.sin(elev)])
@@ -159,120 +154,18 @@ def sunsky_panorama(rng: np.random.Generator, h: int = 64, w: int = 128) -> np.n
     return img.astype(np.float32)
 
 
-@dataclass
-class MaskSample:
-    alpha: np.ndarray      # [H, W] coverage in [0, 1]
-    normal: np.ndarray     # [H, W, 3] unit normals where covered, 0 elsewhere
-    coverage: float        # solid-angle-weighted mean of alpha
-
-    def as_dict(self) -> dict:
-        return {"alpha": self.alpha, "normal": self.normal, "coverage": self.coverage}
 
 
-def _box_room(rng, size, open_top: bool):
-    import trimesh
-    sx, sy, sz = size
-    parts = [trimesh.creation.box((sx, sy, 0.05), transform=_tr([0, 0, -0.025]))]
-    if not open_top:
-        parts.append(trimesh.creation.box((sx, sy, 0.05), transform=_tr([0, 0, sz + 0.025])))
-    for sgn in (-1, 1):
-        if rng.random() < 0.8:
-            parts.append(trimesh.creation.box((0.05, sy, sz), transform=_tr([sgn * sx / 2, 0, sz / 2])))
-        if rng.random() < 0.8:
-            parts.append(trimesh.creation.box((sx, 0.05, sz), transform=_tr([0, sgn * sy / 2, sz / 2])))
-    return parts
 
 
-def _tr(t):
-    import trimesh
-    return trimesh.transformations.translation_matrix(t)
 
 
-def _furniture(rng, extent, n):
-    import trimesh
-    parts = []
-    for _ in range(n):
-        x, y = rng.uniform(-extent / 2, extent / 2, 2)
-        k = rng.integers(3)
-        if k == 0:
-            s = rng.uniform(0.2, 1.2, 3)
-            parts.append(trimesh.creation.box(s, transform=_tr([x, y, s[2] / 2])))
-        elif k == 1:
-            r = rng.uniform(0.1, 0.5)
-            m = trimesh.creation.icosphere(subdivisions=2, radius=r)
-            m.apply_translation([x, y, r])
-            parts.append(m)
-        else:
-            r, hh = rng.uniform(0.05, 0.3), rng.uniform(0.5, 3.0)
-            parts.append(trimesh.creation.cylinder(radius=r, height=hh, transform=_tr([x, y, hh / 2])))
-    return parts
 
 
-def random_surfel_scene(rng, n_surfels: int):
-    """(surfel params, sampling box for the trace point) of a procedural indoor/outdoor scene."""
-    import trimesh
-    from ..surfels.from_mesh import from_mesh
-    if rng.random() < 0.5:      # outdoor yard: ground + objects, open sky
-        ext = rng.uniform(6, 14)
-        parts = [trimesh.creation.box((ext, ext, 0.05), transform=_tr([0, 0, -0.025]))]
-        parts += _furniture(rng, ext, int(rng.integers(4, 14)))
-        box = (np.array([-1.0, -1.0, 0.2]), np.array([1.0, 1.0, 1.2]))
-    else:                       # room, some walls or the ceiling possibly missing
-        size = np.array([rng.uniform(3, 8), rng.uniform(3, 8), rng.uniform(2.2, 3.5)])
-        parts = _box_room(rng, size, open_top=rng.random() < 0.3)
-        parts += _furniture(rng, min(size[:2]) * 0.9, int(rng.integers(2, 8)))
-        box = (np.array([-size[0] / 4, -size[1] / 4, 0.3]),
-               np.array([size[0] / 4, size[1] / 4, size[2] * 0.6]))
-    mesh = trimesh.util.concatenate(parts)
-    mesh.visual.vertex_colors = np.tile([128, 128, 128, 255], (len(mesh.vertices), 1)).astype(np.uint8)
-    params = from_mesh(mesh, n_surfels, seed=int(rng.integers(1 << 30)), opacity=0.95)
-    return params, box
 
 
-def _random_cone(rng):
-    """Unit axis (biased upwards) and half-angle of a random-region dropout."""
-    z = rng.uniform(-0.3, 1.0) if rng.random() < 0.7 else rng.uniform(-1.0, 1.0)
-    phi = rng.uniform(0, 2 * np.pi)
-    r = np.sqrt(max(0.0, 1 - z * z))
-    return np.array([r * np.cos(phi), r * np.sin(phi), z]), np.radians(rng.uniform(15, 70))
 
 
-def mask_bank(n: int, h: int = 64, w: int = 128, seed: int = 0, n_surfels: int = 20000,
-              points_per_scene: int = 8, dropout: float = 0.7, progress: bool = False
-              ) -> list[dict]:
-    """``n`` masks [{alpha [h, w], normal [h, w, 3], coverage}] traced from random points of
-    random procedural surfel scenes; with probability ``dropout`` the surfels inside a random
-    cone seen from the point are dropped first (Appendix, "random-region dropout")."""
-    import drjit as dr
-
-    from ..cameras import gbuffer_scene
-    from ..integrators.panorama import PanoramaConfig, trace_panorama
-    rng = np.random.default_rng(seed)
-    out: list[dict] = []
-    cfg = PanoramaConfig(width=w, height=h, max_hits=16, exclude_radius=0.15)
-    it = range(-(-n // points_per_scene))
-    if progress:
-        from tqdm import tqdm
-        it = tqdm(it, desc="masks", unit="scene")
-    for _ in it:
-        params, (lo, hi) = random_surfel_scene(rng, n_surfels)
-        means = np.asarray(dr.detach(params.means), np.float64).T                     # [N, 3]
-        full = gbuffer_scene(params, [], targets="weight")
-        for _ in range(points_per_scene):
-            if len(out) >= n:
-                break
-            p = rng.uniform(lo, hi)
-            scene = full
-            if rng.random() < dropout:
-                axis, ang = _random_cone(rng)
-                v = means - p
-                cosang = (v @ axis) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
-                keep = cosang < np.cos(ang)
-                if keep.sum() > 100:
-                    scene = gbuffer_scene(params.subset(keep), [], targets="weight")
-            pano = trace_panorama(scene, p, cfg)
-            out.append(MaskSample(pano["alpha"], pano["normal"], float(pano["meta"]["coverage"])).as_dict())
-    return out
 
 
 def interior_colour(rng: np.random.Generator, lo: float, hi: float, warm: float = 0.6) -> np.ndarray:
@@ -280,7 +173,6 @@ def interior_colour(rng: np.random.Generator, lo: float, hi: float, warm: float 
     (0–0.6, skewed to 0), hue warm (wood, beige, terracotta) with probability ``warm``, else any.
     Version 1 drew near-greys only, and the net trained on it filled holes greyer than the
     scene (measured on the held-out interior map)."""
-    import colorsys
     hue = rng.uniform(0.02, 0.14) if rng.random() < warm else rng.uniform(0.0, 1.0)
     sat = 0.6 * rng.beta(1.2, 2.5)
     return np.clip(np.array(colorsys.hsv_to_rgb(hue, sat, rng.uniform(lo, hi))), 0.02, 0.95)
@@ -288,7 +180,6 @@ def interior_colour(rng: np.random.Generator, lo: float, hi: float, warm: float 
 
 def _room_dict(rng) -> tuple[dict, np.ndarray, np.ndarray]:
     """Mitsuba scene dict of a procedural room, and the box to pick the viewpoint in."""
-    import mitsuba as mi
     T = mi.ScalarTransform4f
     sx, sy, sz = rng.uniform(3, 9), rng.uniform(3, 9), rng.uniform(2.3, 4.0)
 
@@ -356,10 +247,7 @@ def room_panorama(rng: np.random.Generator, h: int = 64, w: int = 128, spp: int 
     """An indoor HDR panorama [h, w, 3] path traced (Mitsuba ``path``, 5 bounces) from a point
     in a procedural room (random size and wall colours, 0–4 windows, 0–3 ceiling lamps, boxes
     and balls). Each pixel averages ``spp`` stratified-jittered rays over its footprint."""
-    import drjit as dr
-    import mitsuba as mi
 
-    from ..integrators.panorama import pixel_directions
     d, lo, hi = _room_dict(rng)
     scene = mi.load_dict(d)
     s = max(1, int(round(np.sqrt(spp))))

@@ -8,10 +8,11 @@ directions inside it (s = 1: the texel centre).
 from __future__ import annotations
 
 import numpy as np
+from tqdm.auto import tqdm
 
-from ..integrators.visibility import trace_visibility_np
-from . import octahedral as octa
-from .probes import ProbeSet
+from comgs_dr.core import octahedral as octa
+from comgs_dr.sops.probes import ProbeSet
+from comgs_dr.surfels.trace import trace_visibility_np
 
 
 def texel_directions(res: int, supersample: int = 1, seed: int = 0) -> np.ndarray:
@@ -42,7 +43,6 @@ def bake(scene, probes: ProbeSet, max_hits: int = 8, supersample: int = 1,
     dirs = texel_directions(probes.res, supersample)                   # [R²s², 3]
     per = len(dirs)
     n = probes.count * per
-    from tqdm.auto import tqdm
     bar = tqdm(total=n, desc="bake SOPs", unit="ray", unit_scale=True, disable=not progress)
     occ = np.empty(n, np.float32)
     rad = np.zeros((n, 3), np.float32)

@@ -20,10 +20,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import drjit as dr
+import fpsample
 import mitsuba as mi
 import numpy as np
+from scipy.spatial import cKDTree
 
-from .probes import ProbeSet
+from comgs_dr.core.cameras import camera_rays
+from comgs_dr.sops.probes import ProbeSet
+from comgs_dr.surfels.scene import gbuffer_scene
 
 
 @dataclass(frozen=True)
@@ -57,8 +61,6 @@ class FusedPoints:
 def render_geometry(params, cameras, max_hits: int = 32) -> list[dict]:
     """Per camera: {'weight' [H,W], 'depth' [H,W] (unbiased), 'normal' [H,W,3],
     'origins'/'dirs' [H,W,3]} from the ``surfel_gbuffer`` integrator."""
-    from ..cameras import gbuffer_scene
-    from ..recon.losses import camera_rays
     sensors = [c.sensor_dict() for c in cameras]
     scene = gbuffer_scene({"surfels": params}, sensors, max_hits=max_hits,
                           targets="weight,depth_unbiased,normal")
@@ -117,7 +119,6 @@ def fuse_depth(cameras, buffers, cfg: PlacementConfig) -> FusedPoints:
 def farthest_points(points: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
     """Indices of ``count`` farthest-point samples (``fpsample`` library, bucket/KD-line
     variant: exact FPS order up to ties)."""
-    import fpsample
     n = len(points)
     if count >= n:
         return np.arange(n)
@@ -154,7 +155,6 @@ def place_probes(params, cameras, cfg: PlacementConfig = PlacementConfig(),
         np.linalg.norm(fused.points.max(0) - fused.points.min(0)))
     positions = pts + cfg.offset_frac * size * nrm
     # spacing: the smallest distance between chosen samples ≈ FPS covering radius
-    from scipy.spatial import cKDTree
     if len(pts) > 1:
         dist, _ = cKDTree(pts).query(pts, k=2)
         spacing = float(np.median(dist[:, 1]))

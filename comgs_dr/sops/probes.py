@@ -16,9 +16,10 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
 
-from . import octahedral as octa
+from comgs_dr.core import octahedral as octa
 
 FORMAT_VERSION = 1
 CHANNELS = 4
@@ -67,7 +68,6 @@ class ProbeSet:
 
     def atlas(self):
         """Flat bordered ``mi.Float`` atlas (the optimised parameter in step 2)."""
-        import mitsuba as mi
         return mi.Float(self.bordered().ravel())
 
     def set_from_atlas(self, atlas) -> None:

@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+from scipy.spatial import cKDTree
 
 __all__ = ["ProbeGrid", "KnnResult", "query", "interpolate", "brute_force_query",
            "EPS_REL", "BACKFACE_FLOOR"]
@@ -166,7 +167,6 @@ class ProbeGrid:
     def kdtree(self):
         """scipy cKDTree over the probes (built on first use; fallback queries)."""
         if self._kdtree is None:
-            from scipy.spatial import cKDTree
             self._kdtree = cKDTree(self.positions.astype(np.float64))
         return self._kdtree
 

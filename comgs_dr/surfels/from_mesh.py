@@ -16,9 +16,11 @@ import logging
 import os
 
 import numpy as np
+import trimesh
+from PIL import Image
 
-from .kernel import SH_C0
-from .params import SurfelParams, sh_coeff_count
+from comgs_dr.surfels.kernel import SH_C0
+from comgs_dr.surfels.params import SurfelParams, sh_coeff_count
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +154,6 @@ def frame_to_quat(R) -> np.ndarray:
 
 def _parts(mesh) -> list:
     """A path, Trimesh or Scene -> list of Trimesh in world coordinates."""
-    import trimesh
     src = mesh
     if isinstance(mesh, (str, os.PathLike)):
         src = os.fspath(mesh)
@@ -199,7 +200,6 @@ def from_mesh(mesh, n: int, *, seed: int = 0, opacity: float = 0.95, sh_degree: 
         raise ValueError(f"from_mesh: scale_factor must be > 0, got {scale_factor}")
     K = sh_coeff_count(sh_degree)
     if texture is not None and not hasattr(texture, "convert"):
-        from PIL import Image
         texture = Image.open(os.fspath(texture))
 
     parts = _parts(mesh)

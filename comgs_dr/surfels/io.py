@@ -22,9 +22,10 @@ import logging
 import os
 
 import numpy as np
+import plyfile
 
-from .kernel import SH_C0
-from .params import SurfelParams
+from comgs_dr.surfels.kernel import SH_C0
+from comgs_dr.surfels.params import SurfelParams
 
 log = logging.getLogger(__name__)
 
@@ -148,7 +149,6 @@ def _material_convention(names: set, tagged: bool, encoding: str) -> tuple[str, 
 
 # --------------------------------------------------------------------- reading
 def _read_plydata(path: str):
-    import plyfile
     try:
         with open(path, "rb") as f:
             return plyfile.PlyData.read(f, mmap=False)
@@ -303,7 +303,6 @@ def save_ply(params: SurfelParams, path, *, color_space: str = "srgb") -> None:
     Refuses (ValueError) non-finite parameters or zero quaternions, which
     :func:`load_ply` would reject.
     """
-    import plyfile
     if color_space not in COLOR_SPACES:
         raise ValueError(f"save_ply: color_space must be one of {COLOR_SPACES}, got {color_space!r}")
     path = os.fspath(path)

@@ -155,3 +155,28 @@ def _f32(a, name, trailing, n=None) -> np.ndarray:
 
 def field_names() -> tuple[str, ...]:
     return tuple(f.name for f in dataclasses.fields(SurfelParams))
+
+
+def field_to_numpy(name: str, value, n: int) -> np.ndarray:
+    """A SurfelParams field (or an Adam moment of it) as [N, ...] float32."""
+    a = np.asarray(value, dtype=np.float32)
+    if name == "sh":
+        return a.reshape(n, -1)
+    return a.T.copy() if a.ndim == 2 else a
+
+
+def field_from_numpy(name: str, a: np.ndarray, like):
+    """Inverse of :func:`field_to_numpy` with the Dr.Jit type of ``like``."""
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    if name == "sh" or a.ndim == 1:
+        return type(like)(a.ravel())
+    return type(like)(a.T.copy())
+
+
+def object_size(params: SurfelParams) -> float:
+    """Robust size of a surfel set: the diagonal of its centres' 0.5–99.5 percentile box
+    (floaters do not count). The unit of step-2 offsets (probe and trace-ray offsets)."""
+    pts = np.asarray(params.means).T                                       # [N, 3]
+    if len(pts) == 0:
+        raise ValueError("object_size: the surfel set is empty")
+    return float(np.linalg.norm(np.percentile(pts, 99.5, 0) - np.percentile(pts, 0.5, 0)))

@@ -20,29 +20,10 @@ import os
 import drjit as dr
 import mitsuba as mi
 
-from . import kernel as K
-from .params import SurfelParams, field_names
-
-
-def _base(obj):
-    return type(obj).__bases__[0]
-
-
-def variant_class(name: str, methods: type, base: type) -> type:
-    """Subclass ``base`` (a per-variant nanobind type) with the methods of ``methods``.
-
-    nanobind types accept a single base, so the plugin's methods live on a plain
-    class and are copied into one subclass per variant; ``isinstance(x, methods)``
-    is replaced by :func:`is_kind`.
-    """
-    ns = {k: v for k, v in vars(methods).items() if k not in ("__dict__", "__weakref__")}
-    ns["_comgs_kind"] = methods.__name__
-    return type(name, (base,), ns)
-
-
-def is_kind(obj, methods: type) -> bool:
-    """True if ``obj`` was built by :func:`variant_class` from ``methods``."""
-    return getattr(type(obj), "_comgs_kind", None) == methods.__name__
+from comgs_dr.core.variant import is_kind, variant_class
+from comgs_dr.surfels import kernel as K
+from comgs_dr.surfels.io import load_ply
+from comgs_dr.surfels.params import SurfelParams, field_names
 
 
 def is_surfel_shape(obj) -> bool:
@@ -94,7 +75,6 @@ class SurfelShapeBase:
             resolved = str(mi.file_resolver().resolve(fname))
             if not os.path.exists(resolved):
                 raise FileNotFoundError(f"surfels: filename '{fname}' not found")
-            from .io import load_ply
             params = load_ply(resolved)
         n = params.count
         if n < 1:
@@ -241,3 +221,7 @@ def _finite_rest(p: SurfelParams, s_idx):
 
 def register():
     mi.register_shape("surfels", lambda props: shape_class()(props))
+
+
+def _base(obj):
+    return type(obj).__bases__[0]

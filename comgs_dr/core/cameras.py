@@ -1,0 +1,85 @@
+"""Cameras: Mitsuba ``perspective`` sensor dicts and the pixel-centre rays of any sensor."""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+
+def perspective(origin, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0), fov: float = 40.0,
+                res: int | tuple[int, int] = 64, spp: int = 1) -> dict:
+    """A ``perspective`` sensor dict looking from ``origin`` at ``target`` (Z-up, box filter).
+
+    ``res`` is an int (square) or (width, height); ``fov`` is the horizontal field of view.
+    """
+    w, h = (res, res) if isinstance(res, int) else res
+    if w < 1 or h < 1:
+        raise ValueError(f"perspective: resolution must be positive, got {w}x{h}")
+    return {
+        "type": "perspective", "fov": float(fov), "fov_axis": "x",
+        "to_world": mi.ScalarTransform4f().look_at(origin=list(map(float, origin)),
+                                                   target=list(map(float, target)),
+                                                   up=list(map(float, up))),
+        "sampler": {"type": "independent", "sample_count": int(spp)},
+        "film": {"type": "hdrfilm", "width": int(w), "height": int(h),
+                 "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+    }
+
+
+
+
+def from_matrix(to_world, fov_x_deg: float, res: int | tuple[int, int], spp: int = 1) -> dict:
+    """A ``perspective`` sensor dict from a Mitsuba camera-to-world 4x4 (+Z forward)."""
+    m = np.asarray(to_world, dtype=float)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise ValueError(f"from_matrix: expected a finite 4x4 matrix, got shape {m.shape}")
+    w, h = (res, res) if isinstance(res, int) else res
+    return {
+        "type": "perspective", "fov": float(fov_x_deg), "fov_axis": "x",
+        "to_world": mi.ScalarTransform4f(m.tolist()),
+        "sampler": {"type": "independent", "sample_count": int(spp)},
+        "film": {"type": "hdrfilm", "width": int(w), "height": int(h),
+                 "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+    }
+
+
+def camera_rays(sensor_or_dict, width: int | None = None, height: int | None = None):
+    """Unit ray directions and origins through pixel centres: (dirs, origins), each
+    ``mi.TensorXf`` [H, W, 3] (no AD).
+
+    Rays are ``sensor.sample_ray(shutter_open, 0, ((x+½)/W, (y+½)/H), aperture centre)``,
+    exactly the deterministic rays of the ``surfel_gbuffer`` integrator, so any Mitsuba
+    sensor works (principal point offsets, thin lens at its centre, orthographic).
+    Origins are per pixel: Mitsuba's perspective rays start on the near-clip plane,
+    o = o_cam + t_near·d (t_near = near_clip / cos), and the G-buffer depth is measured
+    from there — pass these origins to ``depth_to_normal``, not the camera centre.
+    Without ``width``/``height`` the film's crop window is used (offset + crop size,
+    normalised by the full film size), as ``mi.render`` does.
+    """
+    sensor = mi.load_dict(sensor_or_dict) if isinstance(sensor_or_dict, dict) else sensor_or_dict
+    if not isinstance(sensor, mi.Sensor):
+        raise ValueError(f"camera_rays: expected a Mitsuba sensor or sensor dict, "
+                         f"got {type(sensor_or_dict).__name__}")
+    film = sensor.film()
+    if width is None and height is None:
+        (w, h), off, full = film.crop_size(), film.crop_offset(), film.size()
+    elif width is None or height is None:
+        raise ValueError("camera_rays: give both width and height, or neither")
+    else:
+        w, h, off, full = int(width), int(height), (0, 0), (int(width), int(height))
+        if w < 1 or h < 1:
+            raise ValueError(f"camera_rays: resolution must be positive, got {w}x{h}")
+    with dr.suspend_grad():
+        idx = dr.arange(mi.UInt32, w * h)
+        pos = mi.Vector2f(mi.Float(idx % w + off[0]), mi.Float(idx // w + off[1])) + 0.5
+        aperture = mi.Vector2f(0.5)
+        ray, _ = sensor.sample_ray(time=sensor.shutter_open(), sample1=0.0,
+                                   sample2=pos / mi.ScalarVector2f(full), sample3=aperture)
+        d = dr.normalize(mi.Vector3f(ray.d))                               # [H·W]
+        o = mi.Vector3f(ray.o)
+        dirs = mi.TensorXf(dr.ravel(d), shape=(h, w, 3))
+        origins = mi.TensorXf(dr.ravel(o), shape=(h, w, 3))
+        dr.eval(dirs, origins)
+    return dirs, origins
+
+

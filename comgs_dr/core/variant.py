@@ -1,0 +1,83 @@
+"""Mitsuba variant selection and the helpers that build per-variant plugin classes.
+
+Plugin registration itself lives in :mod:`comgs_dr.plugins` (a variant callback installed
+when the package is imported), so selecting a variant here registers our plugins too.
+"""
+from __future__ import annotations
+
+import importlib
+
+import drjit as dr
+import mitsuba as mi
+
+_JIT_VARIANTS = ("cuda_ad_rgb", "llvm_ad_rgb")
+
+
+def set_variant(name: str = "auto") -> str:
+    """Select the Mitsuba variant and register our plugins in it.
+
+    ``"auto"`` picks ``cuda_ad_rgb`` when a CUDA device is usable, else
+    ``llvm_ad_rgb``. Explicit JIT variant names are passed through. Scalar
+    variants are refused: every kernel here is a Dr.Jit JIT kernel.
+
+    Returns the name of the active variant.
+    """
+    if not isinstance(name, str):
+        raise TypeError(f"set_variant(name): expected a string, got {type(name).__name__}")
+    available = mi.variants()
+    if name == "auto":
+        name = "llvm_ad_rgb"
+        if "cuda_ad_rgb" in available and dr.has_backend(dr.JitBackend.CUDA):
+            name = "cuda_ad_rgb"
+    if name.startswith("scalar_"):
+        raise ValueError(
+            f"set_variant('{name}'): comgs_dr needs a JIT variant (llvm_ad_rgb or "
+            "cuda_ad_rgb); scalar variants cannot run its Dr.Jit kernels")
+    if name not in available:
+        raise ValueError(f"set_variant('{name}'): unknown variant; this Mitsuba build "
+                         f"has {', '.join(available)}")
+    if name.startswith("cuda_") and not dr.has_backend(dr.JitBackend.CUDA):
+        raise RuntimeError(f"set_variant('{name}'): no CUDA device/driver is available")
+    if not is_supported_variant(name):
+        raise ValueError(f"set_variant('{name}'): comgs_dr runs in llvm_ad_rgb or cuda_ad_rgb "
+                         "(RGB + AD JIT variants)")
+    mi.set_variant(name)          # comgs_dr.plugins' variant callback registers the plugins
+    return name
+
+
+def variant() -> str | None:
+    """The active Mitsuba variant (None if none is set)."""
+    return mi.variant()
+
+
+def is_supported_variant(name: str | None) -> bool:
+    """Our kernels run in the JIT + AD RGB variants: llvm_ad_rgb and cuda_ad_rgb."""
+    return name in ("llvm_ad_rgb", "cuda_ad_rgb")
+
+
+
+
+def variant_class(name: str, methods: type, base: type) -> type:
+    """Subclass ``base`` (a per-variant nanobind type) with the methods of ``methods``.
+
+    nanobind types accept a single base, so the plugin's methods live on a plain
+    class and are copied into one subclass per variant; ``isinstance(x, methods)``
+    is replaced by :func:`is_kind`.
+    """
+    ns = {k: v for k, v in vars(methods).items() if k not in ("__dict__", "__weakref__")}
+    ns["_comgs_kind"] = methods.__name__
+    return type(name, (base,), ns)
+
+
+def is_kind(obj, methods: type) -> bool:
+    """True if ``obj`` was built by :func:`variant_class` from ``methods``."""
+    return getattr(type(obj), "_comgs_kind", None) == methods.__name__
+
+
+def mitsuba_ad_base(name: str = "RBIntegrator"):
+    """Mitsuba's Python AD integrator base class (``RBIntegrator``, ``ADIntegrator``)
+    built for the active variant."""
+    from mitsuba.python.ad.integrators import common as mi_common
+    if not issubclass(mi_common.ADIntegrator, mi.CppADIntegrator):
+        mi_common = importlib.reload(mi_common)   # Mitsuba's own callback has not run yet
+    return getattr(mi_common, name)

@@ -1,0 +1,382 @@
+"""Step 2: material and lighting decomposition with SOPs (paper, "Step 2").
+
+Continues a step-1 run folder: places and bakes Surface Octahedral Probes, then optimises
+the surfels' albedo/roughness/metallic, an octahedral environment map (log radiance) and
+the probe textures with
+
+    L = L_pbr + λ_lam·L_lam + λ_sops·L_sops,
+    L_pbr = L1 + 0.2·(1 − SSIM) of the deferred-PBR image (display sRGB) vs the photo,
+    L_lam = L1(R, 1) + L1(M, 0),   L_sops = L1(L_in, L_tr) + L1(O, O_tr)  (baked targets).
+
+Deviation from the paper, on purpose: the step-1 geometry is kept fixed (no λ_d2n, λ_mask
+terms), so the geometry buffers of every view are traced once and cached; only material
+buffers are re-rendered per iteration. ``visibility='trace'`` replaces the probes by
+per-iteration ray tracing (the IRGS-style baseline) at otherwise identical settings.
+
+Outputs in ``out_dir`` (default ``RUN/material``): ``point_cloud.ply`` (relightable),
+``envmap.exr`` (octahedral) + ``envmap_equirect.exr``, ``probes.npz``, ``train_log.json``,
+``psnr_vs_time.png``, ``checkpoint.npz`` (atomic; resumed automatically).
+"""
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+from tqdm.auto import tqdm
+
+from comgs_dr.core import octahedral as octa
+from comgs_dr.data.load import load_dataset
+from comgs_dr.eval.metrics import psnr
+from comgs_dr.lighting.envmap import OctEnvmap
+from comgs_dr.shading.deferred import DeferredPbr
+from comgs_dr.shading.shade import ShadingConfig, shade
+from comgs_dr.shading.visibility import NoVisibility, SopVisibility, TraceVisibility
+from comgs_dr.sops.bake import bake
+from comgs_dr.sops.placement import PlacementConfig, place_probes
+from comgs_dr.sops.probes import ProbeSet
+from comgs_dr.sops.query import ProbeGrid
+from comgs_dr.surfels import load_ply, save_ply
+from comgs_dr.surfels.scene import gbuffer_scene
+from comgs_dr.train import checkpoint as ck
+from comgs_dr.train import losses as L
+from comgs_dr.train.loop import plot_psnr
+from comgs_dr.train.run import read_run_info
+
+
+@dataclass
+class MaterialConfig:
+    iterations: int = 2000              # sec. 4.1: 2k
+    rays: int = 128                     # S_r
+    sampling: str = "uniform"
+    env_res: int = 256                  # sec. 4.1: 256²
+    env_init: float = 0.5               # initial constant radiance
+    probe_count: int = 5000             # sec. 4.1: 5k
+    probe_res: int = 16                 # sec. 4.1: 16²
+    probe_offset: float = 0.01          # × object size (sec. 4.1: 1 %)
+    probe_k: int = 8
+    bake_hits: int = 32
+    bake_supersample: int = 1
+    visibility: str = "sops"            # sops | trace | none
+    indirect: bool = True
+    trace_hits: int = 32
+    trace_offset: float = 0.01          # × object size: visibility-ray origin offset
+    lr_env: float = 0.01                # sec. 4.1
+    lr_material: float = 0.01
+    lr_sops: float = 0.001
+    lambda_lam: float = 0.001
+    lambda_sops: float = 1.0
+    lambda_ssim: float = 0.2
+    init_albedo: float = 0.5
+    init_roughness: float = 0.5
+    init_metallic: float = 0.0
+    min_roughness: float = 0.04
+    max_hits: int = 32
+    eval_every: int = 100
+    eval_views: int = 6
+    log_every: int = 10
+    checkpoint_every: int = 200
+    seed: int = 0
+    time_limit_s: float | None = None
+
+    def __post_init__(self):
+        if self.visibility not in ("sops", "trace", "none"):
+            raise ValueError(f"MaterialConfig.visibility must be sops, trace or none, got "
+                             f"{self.visibility!r}")
+        if self.iterations < 1 or self.rays < 1:
+            raise ValueError("MaterialConfig: iterations and rays must be ≥ 1")
+
+
+MAT_KEYS = ("surfels.albedo", "surfels.roughness", "surfels.metallic")
+
+
+class MaterialTrainer:
+    def __init__(self, run_dir, out_dir=None, cfg: MaterialConfig = MaterialConfig(),
+                 progress: bool = True, data=None):
+
+        self.cfg, self.progress = cfg, progress
+        self.run_dir = Path(run_dir)
+        self.out_dir = Path(out_dir) if out_dir else self.run_dir / "material"
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        info = read_run_info(self.run_dir)
+        ply = self.run_dir / "point_cloud.ply"
+        if not ply.exists():
+            raise FileNotFoundError(f"{ply} not found: finish step 1 first (`comgs reconstruct`)")
+        self.data = data if data is not None else load_dataset(
+            info["data"], white_background=info["white_background"],
+            resolution_scale=info["resolution_scale"])
+        self.bg = 1.0 if self.data.white_background else 0.0
+        self.rng = np.random.default_rng(cfg.seed)
+        params = load_ply(str(ply))
+        resumed = self._load_checkpoint()
+        n = params.count
+        if resumed is None:
+            params.albedo = mi.Color3f(np.full((3, n), cfg.init_albedo, np.float32))
+            params.roughness = mi.Float(np.full(n, cfg.init_roughness, np.float32))
+            params.metallic = mi.Float(np.full(n, cfg.init_metallic, np.float32))
+        self.views, self.test = self.data.train, self.data.test
+        sensors = [v.camera.sensor_dict() for v in self.views + self.test]
+        self.scene = gbuffer_scene({"surfels": params}, sensors, max_hits=cfg.max_hits,
+                                   targets="weight")
+        pts = np.asarray(params.means).T
+        self.object_size = float(np.linalg.norm(np.percentile(pts, 99.5, 0)
+                                                - np.percentile(pts, 0.5, 0)))
+        self.timings = {}
+        self.env = OctEnvmap.constant(cfg.env_res, cfg.env_init)
+        self.probes = None
+        if cfg.visibility == "sops":
+            self.probes = self._make_probes(params)
+            grid = ProbeGrid(self.probes.positions, self.probes.radius)
+            self.vis = SopVisibility(self.probes.atlas(), grid, self.probes.res, cfg.probe_k)
+            self.sops_target = mi.Float(self.probes.atlas())
+            self._sops_border = octa.BorderRefresher(self.probes.count, self.probes.res, 4)
+            is_occ = (dr.arange(mi.UInt32, dr.width(self.sops_target)) % 4) == 3
+            self._sops_is_occ = is_occ
+            self._sops_w = dr.select(is_occ, 1.0, 1.0 / 3.0)
+        elif cfg.visibility == "trace":
+            self.vis = TraceVisibility(self.scene, cfg.trace_offset * self.object_size,
+                                       cfg.trace_hits)
+        else:
+            self.vis = NoVisibility()
+        shading = ShadingConfig(rays=cfg.rays, sampling=cfg.sampling, indirect=cfg.indirect)
+        self.pbr = DeferredPbr(self.scene, self.env, self.vis, shading, cfg.max_hits)
+        self.mp = mi.traverse(self.scene)
+        self.mp.keep(r"surfels\.(albedo|roughness|metallic)")
+        self.opt = mi.ad.Adam(lr=cfg.lr_material)
+        for k in MAT_KEYS:
+            self.opt[k] = self.mp[k]
+        self.opt["env"] = self.env.theta
+        lrs = {"env": cfg.lr_env}
+        if self.probes is not None:
+            self.opt["sops"] = self.vis.atlas
+            lrs["sops"] = cfg.lr_sops
+        self.opt.set_learning_rate(lrs)
+        self.iteration, self.elapsed, self.log = 0, 0.0, []
+        if resumed is not None:
+            self._restore(resumed)
+        self.mp.update(self.opt)
+        self.targets = [mi.TensorXf(v.image.astype(np.float32)) for v in self.views]
+        t0 = time.perf_counter()
+        for j in tqdm(range(len(self.views) + len(self.test)), desc="G-buffers", unit="view",
+                      disable=not progress):
+            self.pbr.geometry(j)        # fixed geometry: traced once per view (cached)
+        self.timings["gbuffers_s"] = time.perf_counter() - t0
+        dr.eval()
+
+    # ------------------------------------------------------------------ probes
+    def _make_probes(self, params):
+        path = self.out_dir / "probes_init.npz"
+        if path.exists():
+            return ProbeSet.load(path)
+        t0 = time.perf_counter()
+        cams = [v.camera for v in self.views]
+        probes = place_probes(params, cams, PlacementConfig(
+            count=self.cfg.probe_count, res=self.cfg.probe_res,
+            offset_frac=self.cfg.probe_offset, max_hits=self.cfg.max_hits),
+            object_size=self.object_size, seed=self.cfg.seed)
+        t1 = time.perf_counter()
+        bake(self.scene, probes, self.cfg.bake_hits, self.cfg.bake_supersample,
+             progress=self.progress)
+        t2 = time.perf_counter()
+        self.timings.update(placement_s=t1 - t0, bake_s=t2 - t1)
+        probes.meta["timings"] = {"placement_s": t1 - t0, "bake_s": t2 - t1}
+        probes.save(path)
+        return probes
+
+    # ------------------------------------------------------------------ step
+    def materials(self) -> dict:
+        return {"albedo": self.opt["surfels.albedo"], "roughness": self.opt["surfels.roughness"],
+                "metallic": self.opt["surfels.metallic"]}
+
+    def _render(self, i, seed=0):
+        return self.pbr.render(i, self.materials(), seed=seed, background=self.bg, display=True,
+                               env_theta=self.opt["env"])
+
+    def step(self) -> dict:
+        c = self.cfg
+        i = int(self.rng.integers(len(self.views)))
+        if self.probes is not None:
+            self.vis.atlas = self.opt["sops"]
+        t0 = time.perf_counter()
+        pts, geo = self.pbr.shading_points(i, self.materials())
+        dr.eval(pts.albedo, pts.roughness, pts.metallic)
+        dr.sync_thread()
+        t1 = time.perf_counter()
+        col = shade(pts, self.env, self.vis, self.pbr.cfg, self.iteration, self.opt["env"])
+        img = self.pbr.compose(col, geo, self.bg, display=True)
+        loss = L.rgb_loss(img, self.targets[i], c.lambda_ssim)
+        stats = {}
+        if c.lambda_lam > 0:
+            # 1/P as an opaque variable: a literal would recompile the backward per view
+            inv_p = dr.opaque(mi.Float, 1.0 / max(pts.count, 1))
+            lam = (dr.sum(dr.abs(pts.roughness - 1.0)) + dr.sum(pts.metallic)) * inv_p
+            loss = loss + c.lambda_lam * lam
+        if self.probes is not None and c.lambda_sops > 0:
+            # L1(L_in, L_tr) + L1(O, O_tr): channel weights 1/3,1/3,1/3,1, mean × 4
+            lsops = 4.0 * dr.mean(self._sops_w * dr.abs(self.opt["sops"] - self.sops_target))
+            loss = loss + c.lambda_sops * lsops
+            stats["sops"] = float(lsops[0])
+        dr.eval(loss, img)
+        dr.sync_thread()
+        t2 = time.perf_counter()
+        dr.backward(loss)
+        dr.eval([dr.grad(self.opt[k]) for k in self.opt.keys()])
+        dr.sync_thread()
+        t3 = time.perf_counter()
+        self.opt.step()
+        self._clamp()
+        dr.eval()
+        dr.sync_thread()
+        t4 = time.perf_counter()
+        self.iteration += 1
+        stats.update(loss=float(loss[0]), psnr_train=psnr(np.asarray(img), self.views[i].image),
+                     t_gbuffer=t1 - t0, t_shade=t2 - t1, t_backward=t3 - t2, t_step=t4 - t3,
+                     points=pts.count)
+        return stats
+
+    def _clamp(self):
+        c = self.cfg
+        o = self.opt
+        o["surfels.albedo"] = dr.clip(o["surfels.albedo"], 0.0, 1.0)
+        o["surfels.roughness"] = dr.clip(o["surfels.roughness"], c.min_roughness, 1.0)
+        o["surfels.metallic"] = dr.clip(o["surfels.metallic"], 0.0, 1.0)
+        self.env.theta = o["env"]
+        self.env.refresh()
+        o["env"] = self.env.theta
+        if self.probes is not None:
+            a = dr.detach(o["sops"])
+            a = dr.select(self._sops_is_occ, dr.clip(a, 0.0, 1.0), dr.maximum(a, 0.0))
+            o["sops"] = self._sops_border(a)
+
+    # ------------------------------------------------------------------ eval / io
+    def evaluate(self, max_views: int | None = None) -> dict:
+        vs = self.test or self.views
+        n = len(vs) if max_views is None else min(max_views, len(vs))
+        off = len(self.views) if self.test else 0
+        ps = []
+        for j in np.linspace(0, len(vs) - 1, n).round().astype(int):
+            with dr.suspend_grad():
+                img = self._render(off + int(j), seed=12345)
+            ps.append(psnr(np.asarray(img), vs[j].image))
+        return {"psnr_test": float(np.mean(ps))}
+
+    def _state_arrays(self) -> dict:
+        arrays = {}
+        for k in list(MAT_KEYS) + ["env"] + (["sops"] if self.probes is not None else []):
+            arrays[f"p_{k}"] = np.asarray(self.opt[k])
+            if k in self.opt.state:
+                _, _, _, (t, m, v, _) = self.opt.state[k]
+                arrays[f"m_{k}"], arrays[f"v_{k}"] = np.asarray(m), np.asarray(v)
+                arrays[f"t_{k}"] = np.asarray(t, np.uint32)
+        return arrays
+
+    def checkpoint(self):
+        state = {"format": "comgs_dr.material_checkpoint/1", "iteration": self.iteration,
+                 "elapsed": self.elapsed, "log": self.log, "config": dataclasses.asdict(self.cfg)}
+        arrays = self._state_arrays()
+        arrays["state"] = np.frombuffer(json.dumps(state).encode(), np.uint8)
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        ck.atomic_write_bytes(self.out_dir / "checkpoint.npz", buf.getvalue())
+
+    def _load_checkpoint(self):
+        p = self.out_dir / "checkpoint.npz"
+        if not p.exists():
+            return None
+        try:
+            z = np.load(p)
+            state = json.loads(bytes(z["state"]).decode())
+            arrays = {k: z[k] for k in z.files if k != "state"}
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"checkpoint {p} is unreadable ({e}); delete it to start over") from e
+        if state.get("format") != "comgs_dr.material_checkpoint/1":
+            raise ValueError(f"checkpoint {p} has format {state.get('format')!r}")
+        if state["config"].get("visibility") != self.cfg.visibility:
+            raise ValueError(f"checkpoint {p} was made with visibility "
+                             f"{state['config'].get('visibility')!r}, not {self.cfg.visibility!r}")
+        return state, arrays
+
+    def _restore(self, resumed):
+        state, arrays = resumed
+        for k in list(MAT_KEYS) + ["env"] + (["sops"] if self.probes is not None else []):
+            like = self.opt[k]
+            conv = (lambda a, like=like: type(like)(*a) if np.ndim(a) == 2 else type(like)(a))
+            self.opt[k] = conv(arrays[f"p_{k}"])
+            if f"m_{k}" in arrays and k in self.opt.state:
+                value, promoted, lr, (t0, _, _, vmax) = self.opt.state[k]
+                self.opt.state[k] = (value, promoted, lr, (type(t0)(arrays[f"t_{k}"]),
+                                     conv(arrays[f"m_{k}"]), conv(arrays[f"v_{k}"]), vmax))
+        self.env.theta = self.opt["env"]
+        if self.probes is not None:
+            self.vis.atlas = self.opt["sops"]
+        self.iteration, self.elapsed, self.log = state["iteration"], state["elapsed"], state["log"]
+        _ = mi  # keep the import local
+
+    def save_outputs(self) -> dict:
+        self.mp.update(self.opt)
+        shape = self.scene.shapes()[0]
+        save_ply(shape.params, str(self.out_dir / "point_cloud.ply"))
+        self.env.save(self.out_dir / "envmap.exr")
+        self.env.save(self.out_dir / "envmap_equirect.exr", equirect_width=4 * self.env.res)
+        paths = {"ply": "point_cloud.ply", "envmap": "envmap.exr"}
+        if self.probes is not None:
+            self.probes.set_from_atlas(self.opt["sops"])
+            self.probes.save(self.out_dir / "probes.npz")
+            paths["probes"] = "probes.npz"
+        return paths
+
+
+def train_material(run_dir, out_dir=None, cfg: MaterialConfig = MaterialConfig(),
+                   progress: bool = True, data=None) -> dict:
+    """Run (or resume) step 2; returns the summary written to ``train_log.json``."""
+    tr = MaterialTrainer(run_dir, out_dir, cfg, progress, data)
+    bar = None
+    if progress:
+        bar = tqdm(total=cfg.iterations, initial=tr.iteration, desc=f"step 2 ({cfg.visibility})",
+                   unit="it", dynamic_ncols=True)
+    t0 = time.perf_counter() - tr.elapsed
+    stopped_early = False
+    while tr.iteration < cfg.iterations:
+        stats = tr.step()
+        tr.elapsed = time.perf_counter() - t0
+        it = tr.iteration
+        if it % cfg.log_every == 0 or it % cfg.eval_every == 0 or it == cfg.iterations:
+            rec = {"iteration": it, "time_s": round(tr.elapsed, 3), **stats}
+            if it % cfg.eval_every == 0 or it == cfg.iterations:
+                te = time.perf_counter()
+                rec.update(tr.evaluate(cfg.eval_views))
+                t0 += time.perf_counter() - te
+            tr.log.append(rec)
+            if bar is not None:
+                bar.set_postfix(loss=f"{stats['loss']:.4f}",
+                                psnr=f"{rec.get('psnr_test', stats['psnr_train']):.2f}")
+        if bar is not None:
+            bar.update(1)
+        if it % cfg.checkpoint_every == 0:
+            tr.checkpoint()
+        if cfg.time_limit_s is not None and tr.elapsed > cfg.time_limit_s:
+            stopped_early = True
+            break
+    if bar is not None:
+        bar.close()
+    tr.checkpoint()
+    final = tr.evaluate()
+    paths = tr.save_outputs()
+    its = [r for r in tr.log if "t_gbuffer" in r]
+    split = {k: float(np.median([r[k] for r in its])) for k in
+             ("t_gbuffer", "t_shade", "t_backward", "t_step")} if its else {}
+    summary = {"iterations": tr.iteration, "train_seconds": tr.elapsed,
+               "stopped_early": stopped_early, **final, "median_step_split_s": split,
+               "setup_timings_s": tr.timings, "outputs": paths,
+               "probes": None if tr.probes is None else tr.probes.count,
+               "config": dataclasses.asdict(cfg)}
+    ck.atomic_write_text(tr.out_dir / "train_log.json",
+                         json.dumps({"summary": summary, "log": tr.log}, indent=1))
+    plot_psnr(tr.log, tr.out_dir / "psnr_vs_time.png")
+    return summary

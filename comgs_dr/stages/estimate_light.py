@@ -1,0 +1,310 @@
+"""The lighting-estimation stage: trace → complete → fuse → octahedral map (+ lights).
+
+Paper, "Lighting Estimation" and Appendix "Details of Lighting Estimation": from the
+reconstructed scene, a 360° sweep at the object's placement gives a partial RGB panorama,
+a normal map and an alpha mask (``surfels.panorama.trace_panorama``); a completion model
+(``lighting.backends``) generates LDR panoramas at EV {0, −2.5, −5}, which are fused into an
+HDR environment map (``lighting.hdr.fuse_brackets``) and converted to an octahedral texture
+(``lighting.envmap.equirect_to_oct_np``) for relighting and shadows. We also extract the
+dominant lights (``hdr.extract_lights``).
+
+Input of the backend: the trace's EV-0 display values ``ldr`` clipped to [0, 1] for a
+radiance field fitted in sRGB (the usual case), or ``expose(rgb, 0)`` for a linear one,
+with ``alpha`` as the mask and ``normal``.
+
+Error policy:
+
+* a bad position (not 3 finite values, outside the scene's bbox + 10 %) or an
+  ``exclude_radius`` that removes every surfel: ``trace_panorama``'s ValueError, re-raised
+  with the stage's context;
+* **zero coverage** (nothing of the scene is seen from the position): ValueError. Completing
+  an empty panorama would hallucinate an unconditioned environment that has nothing to do
+  with the scene; the fills cannot run at all. Coverage below ``LOW_COVERAGE`` (the paper
+  evaluates 40–100 %) only warns;
+* **non-finite values** in the traced panorama (NaN/Inf from degenerate surfels): those
+  pixels are treated as unobserved (alpha, colour and normal set to 0) and a warning gives
+  their count; if no finite pixel is left the zero-coverage error follows.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+from comgs_dr.core import colorspace
+from comgs_dr.core.equirect import coverage
+from comgs_dr.lighting import envmap, hdr
+from comgs_dr.lighting.backends import load_network_backend
+from comgs_dr.lighting.completion import LABELS, CompletionBackend
+from comgs_dr.surfels import load_ply
+from comgs_dr.surfels import panorama
+from comgs_dr.surfels.panorama import PanoramaConfig
+from comgs_dr.surfels.shape import SurfelShapeBase
+
+log = logging.getLogger(__name__)
+
+__all__ = ["EstimateConfig", "LOW_COVERAGE", "load_scene", "sanitize_trace", "backend_input",
+           "estimate_light", "write_outputs", "output_paths", "preview_image"]
+
+LOW_COVERAGE = 0.4      # the paper's smallest evaluated coverage (Appendix, Table supp_lgt)
+
+
+@dataclass
+class EstimateConfig:
+    """Settings of :func:`estimate_light` (trace size, completion EVs, octahedral size).
+
+    ``colour_space``: space of the radiance field's colour ('srgb' or 'linear'); None = the
+    PLY's recorded space, or 'srgb' for a scene object. ``net_resolution`` (H, W): input size
+    of the default network backend (None: ``NetworkBackend``'s default, the training size).
+    """
+    width: int = 1024
+    height: int = 512
+    max_hits: int = 32
+    exclude_radius: float = 0.0
+    label: str = "unknown"
+    evs: tuple = (0.0, -2.5, -5.0)
+    oct_res: int = 512
+    net_resolution: tuple | None = None
+    supersample: int = 1
+    colour_space: str | None = None
+    n_lights: int = 3
+
+    def validate(self) -> None:
+        if self.label not in LABELS:
+            raise ValueError(f"EstimateConfig.label must be one of {sorted(LABELS)}, "
+                             f"got {self.label!r}")
+        evs = [float(e) for e in self.evs]
+        if not evs or 0.0 not in evs or any(e > 0 or not np.isfinite(e) for e in evs) \
+                or len(set(evs)) != len(evs):
+            raise ValueError(f"EstimateConfig.evs must be distinct finite values <= 0 including "
+                             f"0, got {self.evs!r}")
+        if isinstance(self.oct_res, bool) or int(self.oct_res) != self.oct_res \
+                or self.oct_res < 2:
+            raise ValueError(f"EstimateConfig.oct_res must be an integer >= 2, got "
+                             f"{self.oct_res!r}")
+        if self.colour_space not in (None, "srgb", "linear"):
+            raise ValueError(f"EstimateConfig.colour_space must be None, 'srgb' or 'linear', "
+                             f"got {self.colour_space!r}")
+
+    def panorama_config(self, colour_space: str):
+        return PanoramaConfig(width=self.width, height=self.height, max_hits=self.max_hits,
+                              exclude_radius=self.exclude_radius, colour_space=colour_space,
+                              supersample=self.supersample)
+
+
+# ---------------------------------------------------------------------------------------
+# Scene and trace handling
+
+def load_scene(path):
+    """(Mitsuba scene with one ``surfels`` shape, colour space) from a surfel PLY file.
+    A Mitsuba variant must be active (``comgs_dr.set_variant``)."""
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"estimate_light: scene file not found: {p}")
+    params, info = load_ply(p, return_meta=True)
+    scene = mi.load_dict({"type": "scene",
+                          "scene": SurfelShapeBase.from_params(params, id="scene")})
+    return scene, info.color_space
+
+
+def sanitize_trace(trace: dict) -> tuple[dict, int]:
+    """Copy of a ``trace_panorama`` result whose non-finite pixels (any NaN/Inf in ldr, rgb,
+    normal or alpha) are unobserved: alpha, colours and normal 0. Returns (trace, count)."""
+    bad = ~np.isfinite(trace["alpha"])                                           # [H, W]
+    for k in ("ldr", "rgb", "normal"):
+        bad |= ~np.isfinite(trace[k]).all(-1)
+    out = dict(trace)
+    n = int(bad.sum())
+    if n:
+        for k in ("ldr", "rgb", "normal", "alpha", "depth"):
+            if k in trace:
+                out[k] = np.where(bad[..., None] if trace[k].ndim == 3 else bad, 0.0,
+                                  trace[k]).astype(np.float32)
+    return out, n
+
+
+def backend_input(trace: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rgb [H,W,3] EV-0 sRGB LDR in [0, 1], normal [H,W,3], mask [H,W] in [0, 1])."""
+    srgb = trace["meta"].get("colour_space", "srgb") == "srgb"
+    rgb = np.clip(trace["ldr"], 0.0, 1.0) if srgb else hdr.expose(trace["rgb"], 0.0)
+    return (rgb.astype(np.float32), trace["normal"].astype(np.float32),
+            np.clip(trace["alpha"], 0.0, 1.0).astype(np.float32))
+
+
+def _coverage(mask) -> float:
+    return coverage(mask)
+
+
+# ---------------------------------------------------------------------------------------
+# The stage
+
+def _lights_json(lights) -> list[dict]:
+    return [{k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else v)
+             for k, v in l.items()} for l in lights]
+
+
+def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = None,
+                   backend: CompletionBackend | None = None) -> dict:
+    """HDR environment map at ``position`` of a surfel scene (Mitsuba scene or PLY path).
+
+    ``backend`` default: ``backends.load_network_backend(resolution=cfg.net_resolution)``
+    (the shipped weights). Returns a dict of NumPy float32 arrays and metadata:
+    ``hdr`` [H, W, 3] linear equirect (trace size), ``oct`` [R, R, 3] octahedral map,
+    ``ldrs`` {ev: [H, W, 3]} completions, ``input`` {"rgb", "normal", "mask"} fed to the
+    backend, ``lights`` (``hdr.extract_lights``), ``coverage`` (solid-angle fraction),
+    ``timings`` {load, trace, completion, fusion, octahedral, lights, total} in seconds and ``meta``.
+    Errors: see the module docstring.
+    """
+    cfg = EstimateConfig() if cfg is None else cfg
+    cfg.validate()
+    t0 = time.perf_counter()
+    timings = {}
+    if isinstance(scene_or_ply_path, (str, Path)):
+        scene, space = load_scene(scene_or_ply_path)
+        source = str(scene_or_ply_path)
+    else:
+        scene, space, source = scene_or_ply_path, "srgb", "<scene>"
+    space = cfg.colour_space or space
+    if backend is None:
+        backend = load_network_backend(resolution=cfg.net_resolution)
+    timings["load"] = time.perf_counter() - t0
+
+    t = time.perf_counter()
+    try:
+        trace = panorama.trace_panorama(scene, position, cfg.panorama_config(space))
+    except ValueError as exc:
+        raise ValueError(f"estimate_light: cannot trace the scene {source} at "
+                         f"{np.asarray(position).tolist()}: {exc}") from exc
+    timings["trace"] = time.perf_counter() - t
+
+    trace, n_bad = sanitize_trace(trace)
+    if n_bad:
+        log.warning("estimate_light: %d traced pixels hold NaN/Inf (degenerate surfels?); "
+                    "they are treated as unobserved", n_bad)
+    rgb, normal, mask = backend_input(trace)
+    cov = _coverage(mask)
+    if cov <= 0.0:
+        raise ValueError(
+            f"estimate_light: zero coverage at {trace['meta']['position']}: no surfel of "
+            f"{source} is visible from there ({trace['meta']['surfels']} traced, "
+            f"{trace['meta']['excluded']} excluded by exclude_radius={cfg.exclude_radius}). "
+            f"Move the position, lower exclude_radius, or check the scene")
+    if cov < LOW_COVERAGE:
+        log.warning("estimate_light: coverage %.1f%% is below %.0f%% (the paper's tested "
+                    "range); the completion is mostly guessed", 100 * cov, 100 * LOW_COVERAGE)
+
+    t = time.perf_counter()
+    evs = tuple(float(e) for e in cfg.evs)
+    ldrs = backend.complete(rgb, normal, mask, evs=evs, label=LABELS[cfg.label])
+    timings["completion"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    ldrs = {float(k): np.asarray(v, np.float32) for k, v in ldrs.items()}
+    radiance = np.asarray(hdr.fuse_brackets(ldrs, evs), np.float32)              # [H, W, 3]
+    if not np.isfinite(radiance).all():
+        raise ValueError(f"estimate_light: the backend {type(backend).__name__} produced "
+                         f"non-finite values")
+    timings["fusion"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    oct_map = envmap.equirect_to_oct_np(radiance, int(cfg.oct_res)).astype(np.float32)
+    timings["octahedral"] = time.perf_counter() - t
+    t = time.perf_counter()
+    lights = hdr.extract_lights(radiance, k=int(cfg.n_lights))
+    timings["lights"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t0
+
+    meta = {"source": source, "position": trace["meta"]["position"], "label": cfg.label,
+            "evs": list(evs), "backend": _backend_name(backend), "colour_space": space,
+            "coverage": cov, "nonfinite_pixels": n_bad,
+            "saturation_limit": hdr.saturation_limit(evs), "config": _jsonable(asdict(cfg)),
+            "trace": _jsonable(trace["meta"]), "radiance": "linear",
+            "layout": {"hdr": "equirect", "oct": "octahedral"}}
+    return {"hdr": radiance, "oct": oct_map, "ldrs": ldrs,
+            "input": {"rgb": rgb, "normal": normal, "mask": mask},
+            "lights": lights, "coverage": cov, "timings": timings, "meta": meta}
+
+
+def _backend_name(backend) -> str:
+    kind = getattr(backend, "kind", None)
+    return type(backend).__name__ + (f"({kind})" if kind else "")
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
+
+
+# ---------------------------------------------------------------------------------------
+# Files
+
+def output_paths(out_path) -> dict:
+    """{'equirect': X.exr, 'oct': X_oct.exr, 'json': X.json, 'preview': X_preview.png}."""
+    p = Path(out_path)
+    if p.suffix.lower() != ".exr":
+        raise ValueError(f"write_outputs: the output must be an .exr file, got {p}")
+    stem = p.with_suffix("")
+    return {"equirect": p, "oct": Path(f"{stem}_oct.exr"), "json": Path(f"{stem}.json"),
+            "preview": Path(f"{stem}_preview.png")}
+
+
+def write_outputs(result: dict, out_path) -> dict:
+    """Write the equirect HDR (``out_path``, EXR with layout metadata), the octahedral map
+    (``*_oct.exr``), ``*.json`` (meta, timings, lights, file names) and a labelled
+    ``*_preview.png``. Returns the paths (``output_paths``)."""
+    paths = output_paths(out_path)
+    envmap.write_exr(paths["equirect"], result["hdr"], "equirect")
+    envmap.write_exr(paths["oct"], result["oct"], "octahedral")
+    doc = {"meta": result["meta"], "timings": result["timings"],
+           "lights": _lights_json(result["lights"]),
+           "files": {k: v.name for k, v in paths.items()}}
+    paths["json"].write_text(json.dumps(_jsonable(doc), indent=2))
+    preview_image(result).save(paths["preview"])
+    return paths
+
+
+def _to_u8(img) -> np.ndarray:
+    return (np.clip(np.nan_to_num(img), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def preview_image(result: dict, panel_width: int = 512):
+    """PIL image: labelled panels (input LDR, mask, normal, completion per EV, fused HDR
+    Reinhard-tonemapped), two per row, each at most ``panel_width`` wide."""
+    inp = result["input"]
+    mask = inp["mask"]
+    panels = [("traced input LDR (EV 0)", inp["rgb"]),
+              (f"mask (coverage {100 * result['coverage']:.1f}%)",
+               np.repeat(mask[..., None], 3, -1)),
+              ("normal (n/2 + 1/2)", np.where(mask[..., None] > 0, inp["normal"] * 0.5 + 0.5, 0))]
+    for ev in sorted(result["ldrs"], reverse=True):
+        panels.append((f"completion EV {ev:g}", result["ldrs"][ev]))
+    h = result["hdr"]
+    panels.append((f"fused HDR, Reinhard (max {float(h.max()):.3g})",
+                   colorspace.srgb_encode(h / (1.0 + h))))
+    font = ImageFont.load_default()
+    ih, iw = panels[0][1].shape[:2]
+    pw = min(panel_width, iw)
+    ph, bar, cols = max(1, round(ih * pw / iw)), 16, 2
+    rows = -(-len(panels) // cols)
+    sheet = Image.new("RGB", (cols * pw, rows * (ph + bar)), (32, 32, 32))
+    draw = ImageDraw.Draw(sheet)
+    for i, (title, img) in enumerate(panels):
+        x, y = (i % cols) * pw, (i // cols) * (ph + bar)
+        tile = Image.fromarray(_to_u8(img)).resize((pw, ph), Image.BILINEAR)
+        sheet.paste(tile, (x, y + bar))
+        draw.text((x + 4, y + 2), title, fill=(255, 255, 255), font=font)
+    return sheet

@@ -1,0 +1,78 @@
+"""Render a finished step-1 run on its test (or train) views and write metrics."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+from PIL import Image
+from tqdm import tqdm
+
+from comgs_dr.data.load import load_dataset
+from comgs_dr.eval import metrics as M
+from comgs_dr.surfels import load_ply
+from comgs_dr.surfels.scene import gbuffer_scene
+from comgs_dr.train import checkpoint as ck
+from comgs_dr.train.run import read_run_info
+
+
+def _gt_geometry(data_dir: Path, split: str) -> list:
+    """Per-view (normal, depth) ground-truth EXR paths written by `comgs make-dataset`, if any."""
+    f = data_dir / f"transforms_{split}.json"
+    if not f.exists():
+        return []
+    frames = json.loads(f.read_text()).get("frames", [])
+    return [(data_dir / fr["normal_path"] if "normal_path" in fr else None,
+             data_dir / fr["depth_path"] if "depth_path" in fr else None) for fr in frames]
+
+
+def render_run(run_dir, views: str = "test", progress: bool = True, max_hits: int = 32) -> dict:
+    """Render ``views`` ('test' or 'train'); write images and ``metrics_<views>.json``."""
+
+
+    run_dir = Path(run_dir)
+    info = read_run_info(run_dir)
+    ply = run_dir / "point_cloud.ply"
+    if not ply.exists():
+        raise FileNotFoundError(f"{ply} not found: the run has not finished (resume it with `comgs reconstruct`)")
+    data = load_dataset(info["data"], white_background=info["white_background"],
+                        resolution_scale=info["resolution_scale"])
+    vs = data.test if views == "test" else data.train
+    if not vs:
+        raise ValueError(f"the dataset at {info['data']} has no {views} views")
+    params = load_ply(str(ply))
+    scene = gbuffer_scene({"surfels": params}, [v.camera.sensor_dict() for v in vs], max_hits=max_hits,
+                          background=1.0 if data.white_background else 0.0)
+    integ = scene.integrator()
+    gt_geo = _gt_geometry(Path(info["data"]), views) if info["resolution_scale"] == 1 else []
+    out_dir = run_dir / f"render_{views}"
+    out_dir.mkdir(exist_ok=True)
+    per_view = []
+    it = range(len(vs))
+    if progress:
+        it = tqdm(it, desc=f"render {views}", unit="view")
+    for i in it:
+        v = vs[i]
+        b = {k: np.asarray(t) for k, t in integ.split(mi.render(scene, sensor=i)).items()}
+        c = np.clip(b["color"], 0, 1)
+        Image.fromarray((c * 255 + 0.5).astype(np.uint8)).save(out_dir / f"{i:03d}_color.png")
+        n_vis = (0.5 * b["normal"] + 0.5 * b["weight"]).clip(0, 1)
+        Image.fromarray((n_vis * 255 + 0.5).astype(np.uint8)).save(out_dir / f"{i:03d}_normal.png")
+        rec = {"view": v.name, "psnr": M.psnr(c, v.image), "ssim": M.ssim(c, v.image)}
+        if i < len(gt_geo):
+            npath, dpath = gt_geo[i]
+            mask = v.mask if v.mask is not None else (b["weight"][..., 0] > 0.5).astype(np.float32)
+            mask = ((mask > 0.99) & (b["weight"][..., 0] > 0.5)).astype(np.float32)
+            if npath is not None and npath.exists():
+                rec["normal_mae_deg"] = M.normal_mae_deg(b["normal"], np.asarray(mi.Bitmap(str(npath)))[..., :3], mask)
+            if dpath is not None and dpath.exists():
+                d_gt = np.asarray(mi.Bitmap(str(dpath)))
+                d_gt = d_gt[..., 0] if d_gt.ndim == 3 else d_gt
+                rec.update(M.depth_errors(b["depth_unbiased"][..., 0], d_gt, mask))
+        per_view.append(rec)
+    keys = [k for k in per_view[0] if k != "view"]
+    summary = {k: float(np.nanmean([r[k] for r in per_view if k in r])) for k in keys}
+    result = {**summary, "views": len(vs), "surfels": params.count, "per_view": per_view}
+    ck.atomic_write_text(run_dir / f"metrics_{views}.json", json.dumps(result, indent=1))
+    return result
