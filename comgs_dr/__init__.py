@@ -10,9 +10,9 @@ from comgs_dr.core.env import ensure_llvm_path
 ensure_llvm_path()
 
 from comgs_dr import plugins as _plugins  # noqa: E402
-from comgs_dr.core.variant import set_variant, variant  # noqa: E402,F401
+from comgs_dr.core.variant import package_version, set_variant, variant  # noqa: E402
 
-__version__ = "0.1.0"
+__version__ = package_version()
 __all__ = ["set_variant", "variant", "__version__"]
 
 _plugins.install_variant_callback()

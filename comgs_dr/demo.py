@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from comgs_dr import set_variant
 from comgs_dr.core import cameras
+from comgs_dr.data.images import to_u8
 from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
 from comgs_dr.surfels import from_mesh, save_ply
 from comgs_dr.surfels.scene import gbuffer_scene
@@ -221,8 +222,7 @@ def contact_sheet(panels, scale: int = 3):
     for label, a in panels:
         a = np.asarray(a, np.float32)
         a = np.repeat(a, 3, -1) if a.shape[-1] == 1 else a[..., :3]
-        a = np.clip(np.nan_to_num(a), 0, 1)
-        im = Image.fromarray((a * 255 + 0.5).astype(np.uint8)).resize(
+        im = Image.fromarray(to_u8(a)).resize(
             (a.shape[1] * scale, a.shape[0] * scale), Image.NEAREST)
         canvas = Image.new("RGB", (im.width, im.height + 14), (255, 255, 255))
         canvas.paste(im, (0, 14))

@@ -24,10 +24,11 @@ def variant():
 
 
 def _fm():
+    from comgs_dr.core.colorspace import srgb_decode, srgb_encode
     from comgs_dr.surfels import from_mesh as fm_fn  # the function (surfels/__init__)
     from comgs_dr.surfels import io
-    from comgs_dr.surfels.from_mesh import TILING, linear_to_srgb, srgb_to_linear
-    return fm_fn, io, TILING, linear_to_srgb, srgb_to_linear
+    from comgs_dr.surfels.from_mesh import TILING
+    return fm_fn, io, TILING, lambda x: srgb_encode(np.clip(x, 0, 1)), srgb_decode
 
 
 def _unequal_mesh():

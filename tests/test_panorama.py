@@ -77,7 +77,8 @@ def closed_sphere():
 
 
 def test_closed_sphere_coverage_depth_normal_colour(closed_sphere):
-    from comgs_dr.surfels.from_mesh import linear_to_srgb, srgb_to_linear
+    from comgs_dr.core.colorspace import srgb_decode as srgb_to_linear
+    from comgs_dr.core.colorspace import srgb_encode as linear_to_srgb
     R, _, out = closed_sphere
     assert out["rgb"].shape == (H, W, 3) and out["ldr"].shape == (H, W, 3)
     assert out["alpha"].shape == (H, W) and out["depth"].shape == (H, W)

@@ -489,8 +489,7 @@ def test_step1_loss_total_parts_and_schedule(rng):
            "normal": _t(np.broadcast_to(0.9 * (n + [0.1, 0, 0]) / np.linalg.norm(n + [0.1, 0, 0]),
                                              (H, W, 3)).copy())}
     gt, K = rng.random((H, W, 3)), (rng.random((H, W)) > 0.5)
-    cfg = L.Step1Loss()
-    assert (cfg.lambda_d2n, cfg.lambda_mask, cfg.lambda_ssim) == (0.05, 0.05, 0.2)
+    cfg = L.Step1Loss(lambda_d2n=0.05)
     for k in ("color", "weight", "normal", "depth_unbiased"):
         dr.enable_grad(buf[k])
     total, p = cfg(buf, _t(gt), mask=_t(K.astype(np.float32)), rays=(d, o), iteration=5000)
@@ -512,6 +511,17 @@ def test_step1_loss_total_parts_and_schedule(rng):
     with pytest.raises(ValueError, match="depth_unbiased"):
         cfg({"color": buf["color"], "normal": buf["normal"], "weight": buf["weight"]}, _t(gt),
             rays=(d, o), iteration=10 ** 6)
+
+
+def test_step1_loss_defaults_are_the_trainers():
+    """The loss the trainer uses is RadianceConfig.loss(); the bare defaults agree with it."""
+    from comgs_dr.stages.reconstruct import RadianceConfig
+    obj, scene = RadianceConfig().loss(), RadianceConfig.from_preset("scene").loss()
+    assert obj == L.Step1Loss()
+    assert scene.lambda_mask == 0 and scene.lambda_d2n == obj.lambda_d2n
+    c = RadianceConfig(lambda_d2n=0.05, d2n_from=600, lambda_ssim=0.3).loss()
+    assert (c.lambda_d2n, c.d2n_from_iteration, c.lambda_ssim) == (0.05, 600, 0.3)
+    assert not c.d2n_active(599) and c.d2n_active(600)
 
 
 # ------------------------------------------------------------------ with the renderer

@@ -7,7 +7,7 @@ import pytest
 
 from comgs_dr import cli
 from comgs_dr.data.load import load_dataset
-from comgs_dr.stages.reconstruct import RadianceConfig, Trainer, train_radiance
+from comgs_dr.stages.reconstruct import CKPT_FORMAT, RadianceConfig, Trainer, train_radiance
 from comgs_dr.train import checkpoint as ck
 
 trimesh = pytest.importorskip("trimesh")
@@ -64,7 +64,7 @@ def test_kill_and_resume(tiny_dataset, tmp_path):
     # so use a short run and then continue it to 60.
     s1 = train_radiance(data, run, _cfg(iterations=40, checkpoint_every=20), progress=False)
     assert s1["iterations"] == 40
-    state = ck.load_checkpoint(run)[2]
+    state = ck.load_checkpoint(run / ck.CKPT_NAME, CKPT_FORMAT)[2]
     assert state["iteration"] == 40
     (run / (ck.CKPT_NAME + ".abc.tmp")).write_bytes(b"half-written")   # a torn temp file is ignored
     s2 = train_radiance(data, run, _cfg(iterations=60, checkpoint_every=20), progress=False)

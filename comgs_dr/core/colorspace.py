@@ -37,7 +37,7 @@ def is_torch(x) -> bool:
     """A torch tensor? (torch is optional and imported only when a tensor comes in.)"""
     if type(x).__module__.split(".")[0] != "torch":
         return False
-    import torch
+    import torch  # optional: only reached when a torch tensor comes in
     return isinstance(x, torch.Tensor)
 
 
@@ -51,7 +51,7 @@ def as_float(x):
 
 def _where(c, a, b):
     if is_torch(a):
-        import torch
+        import torch  # optional: only reached for torch tensors
         return torch.where(c, a, b)
     return np.where(c, a, b)
 

@@ -6,6 +6,7 @@ when the package is imported), so selecting a variant here registers our plugins
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
 
 import drjit as dr
 import mitsuba as mi
@@ -45,6 +46,14 @@ def set_variant(name: str = "auto") -> str:
     return name
 
 
+def package_version() -> str:
+    """The installed comgs_dr version (recorded in generated datasets and weights)."""
+    try:
+        return importlib.metadata.version("comgs_dr")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
 def variant() -> str | None:
     """The active Mitsuba variant (None if none is set)."""
     return mi.variant()
@@ -77,7 +86,9 @@ def is_kind(obj, methods: type) -> bool:
 def mitsuba_ad_base(name: str = "RBIntegrator"):
     """Mitsuba's Python AD integrator base class (``RBIntegrator``, ``ADIntegrator``)
     built for the active variant."""
-    from mitsuba.python.ad.integrators import common as mi_common
+    from mitsuba.python.ad.integrators import (
+        common as mi_common,  # needs an active variant
+    )
     if not issubclass(mi_common.ADIntegrator, mi.CppADIntegrator):
         mi_common = importlib.reload(mi_common)   # Mitsuba's own callback has not run yet
     return getattr(mi_common, name)

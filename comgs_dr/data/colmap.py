@@ -105,7 +105,7 @@ def _model_dir(root: Path) -> Path:
 
 def _read_model(model_dir: Path):
     try:
-        import pycolmap
+        import pycolmap  # heavy: loaded only for COLMAP folders
     except ImportError as e:
         raise ImportError("load_colmap needs pycolmap (pip install pycolmap)") from e
     try:

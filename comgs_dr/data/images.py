@@ -144,3 +144,13 @@ def load_view(name: str, path: Path, to_world: np.ndarray, intrinsics: Intrinsic
     cam = Camera.from_intrinsics(to_world, w0 // k, h0 // k, fx / k, fy / k, cx / k, cy / k,
                                  where=str(path))
     return View(name=name, camera=cam, image=np.clip(img, 0.0, 1.0), mask=mask, path=str(path))
+
+
+def to_u8(img) -> np.ndarray:
+    """8-bit image of display values in [0, 1] (clipped; NaN -> 0; rounded)."""
+    return (np.clip(np.nan_to_num(np.asarray(img, np.float64)), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def write_png8(path, img) -> None:
+    """Save a display-space [H, W, 3|4] (or [H, W]) image in [0, 1] as an 8-bit PNG."""
+    Image.fromarray(to_u8(img)).save(str(path))

@@ -159,3 +159,11 @@ def _intrinsics(c: dict, where: str):
                                  where)(w0, h0)
     return at
 
+
+
+def split_frames(root, split: str) -> list[dict]:
+    """The raw frames of ``root/transforms_<split>.json`` (with the ground-truth paths that
+    ``comgs make-dataset`` records: ``normal_path``, ``depth_path``, ``albedo_path``); [] if
+    the file is absent."""
+    path = Path(root) / f"transforms_{split}.json"
+    return _read_json(path).get("frames", []) if path.exists() else []

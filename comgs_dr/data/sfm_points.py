@@ -14,6 +14,7 @@ from types import SimpleNamespace
 import mitsuba as mi
 import numpy as np
 
+from comgs_dr.core.colorspace import srgb_encode
 from comgs_dr.data.types import project
 
 
@@ -74,7 +75,7 @@ def sample_visible_points(scene, cameras: list[dict], images: list[np.ndarray], 
     if not len(pts):
         raise ValueError(f"sample_visible_points: no surface point is seen by {min_views} cameras")
     pts = pts + rng.normal(0, noise * radius, pts.shape)
-    srgb = np.where(col <= 0.0031308, 12.92 * col, 1.055 * np.maximum(col, 0) ** (1 / 2.4) - 0.055)
+    srgb = srgb_encode(col)
     return pts.astype(np.float32), np.clip(np.round(srgb * 255), 0, 255).astype(np.uint8)
 
 

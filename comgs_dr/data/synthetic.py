@@ -29,7 +29,7 @@ import mitsuba as mi
 import numpy as np
 from tqdm.auto import tqdm
 
-from comgs_dr import __version__
+from comgs_dr.core.variant import package_version
 from comgs_dr.data import synthetic_io as sio
 from comgs_dr.data.sfm_points import sample_visible_points, write_points_ply
 from comgs_dr.lighting.envmap import load_envmap
@@ -386,7 +386,7 @@ def _frame_json(cam: dict) -> dict:
 def _meta(cfg, mesh_path, env_path, relight, texture, obj_m, bound_r, radius, raw,
           variant, spp_test, seconds) -> dict:
     return {
-        "generator": GENERATOR_VERSION, "comgs_dr_version": __version__,
+        "generator": GENERATOR_VERSION, "comgs_dr_version": package_version(),
         "mitsuba_version": mi.__version__, "variant": variant, "seconds": round(seconds, 2),
         "mesh": str(mesh_path.resolve()), "texture": str(texture.resolve()) if texture else None,
         "envmap": str(env_path.resolve()), "envmap_scale": cfg.envmap_scale,

@@ -8,7 +8,8 @@ import mitsuba as mi
 import numpy as np
 from PIL import Image
 
-from comgs_dr import set_variant
+from comgs_dr.core.colorspace import srgb_encode
+from comgs_dr.core.variant import set_variant
 
 _MESH_TYPES = {".obj": "obj", ".ply": "ply"}
 
@@ -128,17 +129,11 @@ class Renderer:
                 "depth": ch["dd"].reshape(cov.shape) * inv}
 
 
-def srgb_encode(x: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 transfer function on linear values clipped to [0, 1]."""
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
 def write_png(path, rgba: np.ndarray) -> None:
     """8-bit sRGB RGBA PNG with straight alpha from premultiplied linear RGBA."""
     a = np.clip(rgba[..., 3:4], 0.0, 1.0)
     rgb = np.where(a > 1e-6, rgba[..., :3] / np.maximum(a, 1e-6), 0.0)
-    out = np.concatenate([srgb_encode(rgb), a], -1)
+    out = np.concatenate([srgb_encode(np.clip(rgb, 0.0, 1.0)), a], -1)
     Image.fromarray(np.round(out * 255.0).astype(np.uint8), "RGBA").save(str(path))
 
 

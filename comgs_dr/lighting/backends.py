@@ -119,7 +119,7 @@ def load_network_backend(path=None, resolution: tuple[int, int] | None = None
 
 def _import_diffusers():
     try:
-        import diffusers
+        import diffusers  # optional dependency (extra 'diffusion')
     except ImportError as exc:
         raise ImportError("DiffusersBackend needs the 'diffusers' package: pip install "
                           "diffusers (or pip install comgs_dr[diffusion])") from exc
@@ -256,7 +256,7 @@ class DiffusersBackend(CompletionBackend):
             index = path / "model_index.json"
             names = json.loads(index.read_text()) if index.is_file() else {}
             try:
-                import transformers
+                import transformers  # optional: only for models with a text encoder
             except ImportError as exc:
                 raise ImportError(f"DiffusersBackend: {path} holds a text encoder; loading it "
                                   f"needs the 'transformers' package") from exc

@@ -38,6 +38,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from comgs_dr.core.colorspace import srgb_decode, srgb_encode
 from comgs_dr.lighting.hdr import push_pull_fill
 
 __all__ = ["FORMAT_VERSION", "DEFAULT_EVS", "EV_MIN", "LABELS", "SATURATION", "CompletionConfig",
@@ -208,19 +209,10 @@ class EVEmbedding(nn.Module):
 
 # ---- Exposure-aware blend of observed pixels ----
 
-def _srgb_encode(x):
-    return torch.where(x <= 0.0031308, 12.92 * x,
-                       1.055 * x.clamp_min(0.0031308) ** (1.0 / 2.4) - 0.055)
-
-
-def _srgb_decode(c):
-    return torch.where(c <= 0.04045, c / 12.92, ((c.clamp_min(0.04045) + 0.055) / 1.055) ** 2.4)
-
-
 def expose_ldr(rgb: torch.Tensor, ev: torch.Tensor) -> torch.Tensor:
     """EV-0 LDR [B, 3, H, W] re-exposed to ``ev`` [B]; exactly ``rgb`` where ev == 0."""
     e = ev.to(rgb.dtype).reshape(-1, 1, 1, 1)
-    out = _srgb_encode(_srgb_decode(rgb) * torch.exp2(e)).clamp(0.0, 1.0)
+    out = srgb_encode(srgb_decode(rgb) * torch.exp2(e)).clamp(0.0, 1.0)
     return torch.where(e == 0, rgb, out)
 
 

@@ -20,8 +20,6 @@ Outputs in ``out_dir`` (default ``RUN/material``): ``point_cloud.ply`` (relighta
 from __future__ import annotations
 
 import dataclasses
-import io
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,22 +30,21 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from comgs_dr.core import octahedral as octa
-from comgs_dr.data.load import load_dataset
 from comgs_dr.eval.metrics import psnr
 from comgs_dr.lighting.envmap import OctEnvmap
 from comgs_dr.shading.deferred import DeferredPbr
 from comgs_dr.shading.shade import ShadingConfig, shade
-from comgs_dr.shading.visibility import NoVisibility, SopVisibility, TraceVisibility
+from comgs_dr.shading.visibility import make_visibility
 from comgs_dr.sops.bake import bake
 from comgs_dr.sops.placement import PlacementConfig, place_probes
 from comgs_dr.sops.probes import ProbeSet
-from comgs_dr.sops.query import ProbeGrid
 from comgs_dr.surfels import load_ply, save_ply
+from comgs_dr.surfels.params import object_size
 from comgs_dr.surfels.scene import gbuffer_scene
 from comgs_dr.train import checkpoint as ck
 from comgs_dr.train import losses as L
-from comgs_dr.train.loop import plot_psnr
-from comgs_dr.train.run import read_run_info
+from comgs_dr.train.loop import finish, run_loop
+from comgs_dr.train.run import load_run_dataset, read_run_info
 
 
 @dataclass
@@ -93,6 +90,7 @@ class MaterialConfig:
             raise ValueError("MaterialConfig: iterations and rays must be ≥ 1")
 
 
+CKPT_FORMAT = "comgs_dr.material_checkpoint/1"
 MAT_KEYS = ("surfels.albedo", "surfels.roughness", "surfels.metallic")
 
 
@@ -108,9 +106,7 @@ class MaterialTrainer:
         ply = self.run_dir / "point_cloud.ply"
         if not ply.exists():
             raise FileNotFoundError(f"{ply} not found: finish step 1 first (`comgs reconstruct`)")
-        self.data = data if data is not None else load_dataset(
-            info["data"], white_background=info["white_background"],
-            resolution_scale=info["resolution_scale"])
+        self.data = data if data is not None else load_run_dataset(self.run_dir, info)
         self.bg = 1.0 if self.data.white_background else 0.0
         self.rng = np.random.default_rng(cfg.seed)
         params = load_ply(str(ply))
@@ -124,26 +120,21 @@ class MaterialTrainer:
         sensors = [v.camera.sensor_dict() for v in self.views + self.test]
         self.scene = gbuffer_scene({"surfels": params}, sensors, max_hits=cfg.max_hits,
                                    targets="weight")
-        pts = np.asarray(params.means).T
-        self.object_size = float(np.linalg.norm(np.percentile(pts, 99.5, 0)
-                                                - np.percentile(pts, 0.5, 0)))
+        self.object_size = object_size(params)
         self.timings = {}
         self.env = OctEnvmap.constant(cfg.env_res, cfg.env_init)
         self.probes = None
         if cfg.visibility == "sops":
             self.probes = self._make_probes(params)
-            grid = ProbeGrid(self.probes.positions, self.probes.radius)
-            self.vis = SopVisibility(self.probes.atlas(), grid, self.probes.res, cfg.probe_k)
+        self.vis = make_visibility(cfg.visibility, scene=self.scene, probes=self.probes,
+                                   k=cfg.probe_k, trace_hits=cfg.trace_hits,
+                                   offset_frac=cfg.trace_offset)
+        if self.probes is not None:
             self.sops_target = mi.Float(self.probes.atlas())
             self._sops_border = octa.BorderRefresher(self.probes.count, self.probes.res, 4)
             is_occ = (dr.arange(mi.UInt32, dr.width(self.sops_target)) % 4) == 3
             self._sops_is_occ = is_occ
             self._sops_w = dr.select(is_occ, 1.0, 1.0 / 3.0)
-        elif cfg.visibility == "trace":
-            self.vis = TraceVisibility(self.scene, cfg.trace_offset * self.object_size,
-                                       cfg.trace_hits)
-        else:
-            self.vis = NoVisibility()
         shading = ShadingConfig(rays=cfg.rays, sampling=cfg.sampling, indirect=cfg.indirect)
         self.pbr = DeferredPbr(self.scene, self.env, self.vis, shading, cfg.max_hits)
         self.mp = mi.traverse(self.scene)
@@ -266,57 +257,36 @@ class MaterialTrainer:
             ps.append(psnr(np.asarray(img), vs[j].image))
         return {"psnr_test": float(np.mean(ps))}
 
-    def _state_arrays(self) -> dict:
-        arrays = {}
-        for k in list(MAT_KEYS) + ["env"] + (["sops"] if self.probes is not None else []):
-            arrays[f"p_{k}"] = np.asarray(self.opt[k])
-            if k in self.opt.state:
-                _, _, _, (t, m, v, _) = self.opt.state[k]
-                arrays[f"m_{k}"], arrays[f"v_{k}"] = np.asarray(m), np.asarray(v)
-                arrays[f"t_{k}"] = np.asarray(t, np.uint32)
-        return arrays
+    def _keys(self) -> dict:
+        return {k: k for k in list(MAT_KEYS) + ["env"] + (["sops"] if self.probes is not None else [])}
 
     def checkpoint(self):
-        state = {"format": "comgs_dr.material_checkpoint/1", "iteration": self.iteration,
-                 "elapsed": self.elapsed, "log": self.log, "config": dataclasses.asdict(self.cfg)}
-        arrays = self._state_arrays()
-        arrays["state"] = np.frombuffer(json.dumps(state).encode(), np.uint8)
-        buf = io.BytesIO()
-        np.savez(buf, **arrays)
-        ck.atomic_write_bytes(self.out_dir / "checkpoint.npz", buf.getvalue())
+        ck.save_checkpoint(self.out_dir / ck.CKPT_NAME, CKPT_FORMAT,
+                           {k: np.asarray(self.opt[k]) for k in self._keys()}, self.opt,
+                           self._keys(), {"iteration": self.iteration, "elapsed": self.elapsed,
+                                          "log": self.log, "config": dataclasses.asdict(self.cfg)})
 
     def _load_checkpoint(self):
-        p = self.out_dir / "checkpoint.npz"
-        if not p.exists():
-            return None
-        try:
-            z = np.load(p)
-            state = json.loads(bytes(z["state"]).decode())
-            arrays = {k: z[k] for k in z.files if k != "state"}
-        except Exception as e:  # noqa: BLE001
-            raise ValueError(f"checkpoint {p} is unreadable ({e}); delete it to start over") from e
-        if state.get("format") != "comgs_dr.material_checkpoint/1":
-            raise ValueError(f"checkpoint {p} has format {state.get('format')!r}")
-        if state["config"].get("visibility") != self.cfg.visibility:
+        p = self.out_dir / ck.CKPT_NAME
+        resumed = ck.load_checkpoint(p, CKPT_FORMAT)
+        if resumed is not None and resumed[2]["config"].get("visibility") != self.cfg.visibility:
             raise ValueError(f"checkpoint {p} was made with visibility "
-                             f"{state['config'].get('visibility')!r}, not {self.cfg.visibility!r}")
-        return state, arrays
+                             f"{resumed[2]['config'].get('visibility')!r}, not {self.cfg.visibility!r}")
+        return resumed
+
+    @staticmethod
+    def _from_numpy(name, a, like):
+        return type(like)(*a) if np.ndim(a) == 2 else type(like)(a)
 
     def _restore(self, resumed):
-        state, arrays = resumed
-        for k in list(MAT_KEYS) + ["env"] + (["sops"] if self.probes is not None else []):
-            like = self.opt[k]
-            conv = (lambda a, like=like: type(like)(*a) if np.ndim(a) == 2 else type(like)(a))
-            self.opt[k] = conv(arrays[f"p_{k}"])
-            if f"m_{k}" in arrays and k in self.opt.state:
-                value, promoted, lr, (t0, _, _, vmax) = self.opt.state[k]
-                self.opt.state[k] = (value, promoted, lr, (type(t0)(arrays[f"t_{k}"]),
-                                     conv(arrays[f"m_{k}"]), conv(arrays[f"v_{k}"]), vmax))
+        arrays, moments, state = resumed
+        for k in self._keys():
+            self.opt[k] = self._from_numpy(k, arrays[k], self.opt[k])
+        ck.restore_moments(self.opt, self._keys(), moments, self._from_numpy)
         self.env.theta = self.opt["env"]
         if self.probes is not None:
             self.vis.atlas = self.opt["sops"]
         self.iteration, self.elapsed, self.log = state["iteration"], state["elapsed"], state["log"]
-        _ = mi  # keep the import local
 
     def save_outputs(self) -> dict:
         self.mp.update(self.opt)
@@ -336,36 +306,7 @@ def train_material(run_dir, out_dir=None, cfg: MaterialConfig = MaterialConfig()
                    progress: bool = True, data=None) -> dict:
     """Run (or resume) step 2; returns the summary written to ``train_log.json``."""
     tr = MaterialTrainer(run_dir, out_dir, cfg, progress, data)
-    bar = None
-    if progress:
-        bar = tqdm(total=cfg.iterations, initial=tr.iteration, desc=f"step 2 ({cfg.visibility})",
-                   unit="it", dynamic_ncols=True)
-    t0 = time.perf_counter() - tr.elapsed
-    stopped_early = False
-    while tr.iteration < cfg.iterations:
-        stats = tr.step()
-        tr.elapsed = time.perf_counter() - t0
-        it = tr.iteration
-        if it % cfg.log_every == 0 or it % cfg.eval_every == 0 or it == cfg.iterations:
-            rec = {"iteration": it, "time_s": round(tr.elapsed, 3), **stats}
-            if it % cfg.eval_every == 0 or it == cfg.iterations:
-                te = time.perf_counter()
-                rec.update(tr.evaluate(cfg.eval_views))
-                t0 += time.perf_counter() - te
-            tr.log.append(rec)
-            if bar is not None:
-                bar.set_postfix(loss=f"{stats['loss']:.4f}",
-                                psnr=f"{rec.get('psnr_test', stats['psnr_train']):.2f}")
-        if bar is not None:
-            bar.update(1)
-        if it % cfg.checkpoint_every == 0:
-            tr.checkpoint()
-        if cfg.time_limit_s is not None and tr.elapsed > cfg.time_limit_s:
-            stopped_early = True
-            break
-    if bar is not None:
-        bar.close()
-    tr.checkpoint()
+    stopped_early = run_loop(tr, cfg, f"step 2 ({cfg.visibility})", progress)
     final = tr.evaluate()
     paths = tr.save_outputs()
     its = [r for r in tr.log if "t_gbuffer" in r]
@@ -376,7 +317,4 @@ def train_material(run_dir, out_dir=None, cfg: MaterialConfig = MaterialConfig()
                "setup_timings_s": tr.timings, "outputs": paths,
                "probes": None if tr.probes is None else tr.probes.count,
                "config": dataclasses.asdict(cfg)}
-    ck.atomic_write_text(tr.out_dir / "train_log.json",
-                         json.dumps({"summary": summary, "log": tr.log}, indent=1))
-    plot_psnr(tr.log, tr.out_dir / "psnr_vs_time.png")
-    return summary
+    return finish(tr, tr.out_dir, summary)

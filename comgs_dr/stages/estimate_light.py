@@ -39,11 +39,11 @@ from PIL import Image, ImageDraw, ImageFont
 
 from comgs_dr.core import colorspace
 from comgs_dr.core.equirect import coverage
+from comgs_dr.data.images import to_u8
 from comgs_dr.lighting import envmap, hdr
 from comgs_dr.lighting.backends import load_network_backend
 from comgs_dr.lighting.completion import LABELS, CompletionBackend
-from comgs_dr.surfels import load_ply
-from comgs_dr.surfels import panorama
+from comgs_dr.surfels import load_ply, panorama
 from comgs_dr.surfels.panorama import PanoramaConfig
 from comgs_dr.surfels.shape import SurfelShapeBase
 
@@ -277,10 +277,6 @@ def write_outputs(result: dict, out_path) -> dict:
     return paths
 
 
-def _to_u8(img) -> np.ndarray:
-    return (np.clip(np.nan_to_num(img), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-
-
 def preview_image(result: dict, panel_width: int = 512):
     """PIL image: labelled panels (input LDR, mask, normal, completion per EV, fused HDR
     Reinhard-tonemapped), two per row, each at most ``panel_width`` wide."""
@@ -304,7 +300,7 @@ def preview_image(result: dict, panel_width: int = 512):
     draw = ImageDraw.Draw(sheet)
     for i, (title, img) in enumerate(panels):
         x, y = (i % cols) * pw, (i // cols) * (ph + bar)
-        tile = Image.fromarray(_to_u8(img)).resize((pw, ph), Image.BILINEAR)
+        tile = Image.fromarray(to_u8(img)).resize((pw, ph), Image.BILINEAR)
         sheet.paste(tile, (x, y + bar))
         draw.text((x + 4, y + 2), title, fill=(255, 255, 255), font=font)
     return sheet

@@ -13,72 +13,83 @@ launches) that a smaller random ray batch would not remove (see benchmarks/recon
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import time
 import warnings
 from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-from tqdm import tqdm
 
 from comgs_dr.core.cameras import camera_rays
 from comgs_dr.eval.metrics import psnr
 from comgs_dr.surfels import kernel as Kn
 from comgs_dr.surfels import load_ply, save_ply
-from comgs_dr.surfels.params import SurfelParams, field_names
+from comgs_dr.surfels.params import (
+    SurfelParams,
+    field_from_numpy,
+    field_names,
+    field_to_numpy,
+)
 from comgs_dr.surfels.scene import gbuffer_scene
 from comgs_dr.train import checkpoint as ck
 from comgs_dr.train import init as I
 from comgs_dr.train import losses as L
 from comgs_dr.train.density import DensityConfig, DensityController
-from comgs_dr.train.loop import plot_psnr
+from comgs_dr.train.loop import finish, run_loop
 
+CKPT_FORMAT = "comgs_dr.checkpoint/1"
 PARAM_KEYS = {f: f"surfels.{f}" for f in field_names() if f not in ("albedo", "roughness", "metallic")}
 
 
 @dataclasses.dataclass
 class RadianceConfig:
-    """Step-1 settings. ``preset`` 'object' uses masks (visual-hull init, mask loss);
-    'scene' initialises from the dataset's points (COLMAP, or ``points3d.ply`` beside NeRF-style
-    JSON), else from random points in the common view frustum, and has no mask loss."""
+    """Step-1 settings; ``RadianceConfig.preset(name, **overrides)`` for a named preset.
+
+    Presets (``PRESETS``): ``object`` starts from the visual-hull shell carved from the masks,
+    adds the mask loss and caps σ at 1 % of the extent; ``scene`` starts from the dataset's
+    points (COLMAP, or ``points3d.ply`` beside NeRF-style JSON), else random points in the
+    common view frustum, has no mask loss and caps σ at 2 %.
+
+    Defaults that differ from 2DGS were measured on 2 CPU cores (spot object: 100 views,
+    128 px, ~15 min; table-top scene: ``comgs make-dataset scene``, 1500 its):
+
+    * ``lambda_d2n`` 0.2 from iteration 300 (paper 0.05 from 7k of 30k): 0.05 from 600 peaked
+      at 30.3 dB and collapsed to 25.5 dB by 2000 its; 0.2 from 300 reached 31.73 dB, normal
+      MAE 5.8° at 3841 its.
+    * ``init_opacity`` 0.5 (3DGS 0.1): +2.7 dB at 300 its with the shell init;
+      ``init_normals`` off: +0.6 dB at 250 its but −3 dB at 500 its.
+    * colour learning rates 2× 3DGS; larger scale/rotation rates grew hazy surfels (−6 dB).
+    * prune-only density control (``densify=None``): objects 28.3/28.6 dB vs 27.1/26.6 dB
+      densified at 300/400 its; scenes 30.4 dB vs 20.0 dB with ``scaled_density_schedule``
+      (the opacities had not recovered from the reset). Pass ``densify`` (DensityConfig
+      fields, {} for its 2DGS defaults) to enable clone/split, e.g. after a random init.
+    * ``max_scale_frac`` (largest σ / extent; None: the preset's): without a cap a few object
+      surfels grew to σ ≈ 0.17–0.3 and hazed the fit (29.9 → 19.8 dB at 1180 its); scenes
+      20.8 vs 18.4 dB at 750 its with a 2 % cap vs none (a hazy floater above the scene).
+    """
     preset: str = "object"
     iterations: int = 3000
     max_hits: int = 24
     sh_degree: int = 2
-    sh_increase_every: int = 250          # one SH band more every this many iterations (3DGS: 1000)
+    sh_increase_every: int = 250          # one SH band more every this many its (3DGS: 1000)
     init_points: int = 20_000
     init: str = "auto"                    # auto | hull | points | random | <path.ply>
-    # Hull init with surfels tangent to the shell (PCA normals): +0.6 dB at 250 its but -3 dB at
-    # 500 its on spot in one 15-min run (with lambda_d2n 0.05: 25.1 dB, normal MAE 13.6 deg
-    # at 1200 its), so off by default.
-    init_normals: bool = False
-    init_opacity: float = 0.5             # hull/points init (3DGS: 0.1); measured +2.7 dB at 300 its on spot with the shell init
+    init_normals: bool = False            # surfels tangent to the initial points (PCA)
+    init_opacity: float = 0.5             # hull/points init
     lambda_ssim: float = 0.2
-    # Paper: 0.05 (2DGS from 7k of 30k its). Measured on spot (100 views, 128 px, 15 min,
-    # uncontended 2 cores, ~3800 its): λ 0.05 from 600 peaked at 30.3 dB (1000 its) and then
-    # collapsed (25.5 dB at 2000 its); λ 0.2 from 300 kept improving: 31.73 dB test PSNR,
-    # normal MAE 5.8° at 3841 its. Short CPU schedules need the stronger, earlier prior.
     lambda_d2n: float = 0.2
-    lambda_mask: float = 0.05
-    d2n_from: int = 300                   # 2DGS enables the normal prior at 7k of 30k iterations
+    lambda_mask: float = 0.05             # object preset only
+    d2n_from: int = 300
     lr_means: float = 1.6e-4              # × scene extent, decays to lr_means_final
     lr_means_final: float = 1.6e-6
-    # 3DGS/2DGS rates; colour 2× faster for the short CPU schedule (larger scale/rotation
-    # rates were measured to grow hazy surfels and lose ~6 dB on the spot object).
     lr_sh_dc: float = 5e-3
     lr_sh_rest: float = 5e-3 / 20
     lr_opacity: float = 0.05
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
-    densify: dict | None = None           # DensityConfig fields; None: prune only (see below)
-    # Largest surfel scale (σ) as a fraction of the scene extent; None: the preset's default.
-    # Objects never split (see below), and without splitting a few surfels were measured to
-    # grow to σ ≈ 0.17-0.3 on spot (×8-15 the median) and haze the fit from ~700 its on
-    # (test PSNR 29.9 -> 19.8 dB at 1180 its); the object preset caps σ at 1 % of the extent.
-    max_scale_frac: float | None = None
+    densify: dict | None = None           # DensityConfig fields; None: prune only
+    max_scale_frac: float | None = None   # largest σ / scene extent; None: the preset's
     eval_every: int = 250
     eval_views: int = 8
     log_every: int = 25
@@ -87,29 +98,33 @@ class RadianceConfig:
     time_limit_s: float | None = None     # stop early (after a checkpoint) when exceeded
 
     def __post_init__(self):
-        if self.preset not in ("object", "scene"):
+        if self.preset not in PRESETS:
             raise ValueError(f"RadianceConfig.preset must be 'object' or 'scene', got {self.preset!r}")
         if self.iterations < 1:
             raise ValueError("RadianceConfig.iterations must be ≥ 1")
         if self.sh_degree not in (0, 1, 2, 3):
             raise ValueError("RadianceConfig.sh_degree must be 0..3")
-        # Both presets only prune by default (no clone/split, no opacity reset): measured
-        # within CPU budgets, density control cost test PSNR. Objects (visual-hull shell,
-        # spot): 27.1/26.6 dB densified vs 28.3/28.6 dB at 300/400 its. Scenes (SfM points,
-        # `comgs make-dataset scene`, 1500 its): prune-only 30.4 dB; `--densify`
-        # (``scaled_density_schedule``: clone/split until 750, opacity resets at 375 and 750)
-        # 28.9 dB at 500 its, 20.0 dB at the end (the opacities had not recovered from the
-        # reset at 750). Pass ``densify`` (DensityConfig fields over its 2DGS defaults, {} for
-        # all defaults) to enable it, e.g. after a random init.
         if self.densify is None:
             self.densify = dict(max_fraction=0.0, opacity_reset_interval=10 ** 9)
         if self.max_scale_frac is None:
-            # scenes: measured 20.8 vs 18.4 dB at 750 its (19.5 vs 15.6 at 1000) with σ capped
-            # at 2 % of the extent vs uncapped, with clone/split (a large hazy floater formed
-            # above the scene; on a version of the scene dataset with black GT pixels)
-            self.max_scale_frac = 0.01 if self.preset == "object" else 0.02
+            self.max_scale_frac = PRESETS[self.preset]["max_scale_frac"]
         if not 0 < self.max_scale_frac <= 1.0:
             raise ValueError("RadianceConfig.max_scale_frac must be in (0, 1]")
+
+    @classmethod
+    def from_preset(cls, name: str, **overrides) -> "RadianceConfig":
+        if name not in PRESETS:
+            raise ValueError(f"unknown step-1 preset {name!r}: {', '.join(PRESETS)}")
+        return cls(**{**PRESETS[name], "preset": name, **overrides})
+
+    def loss(self) -> L.Step1Loss:
+        """The step-1 loss with this config's weights (no mask term for scenes)."""
+        return L.Step1Loss(lambda_d2n=self.lambda_d2n, lambda_ssim=self.lambda_ssim,
+                           lambda_mask=self.lambda_mask if self.preset == "object" else 0.0,
+                           d2n_from_iteration=self.d2n_from)
+
+
+PRESETS = {"object": {"max_scale_frac": 0.01}, "scene": {"max_scale_frac": 0.02}}
 
 
 def scaled_density_schedule(iterations: int) -> dict:
@@ -170,9 +185,10 @@ class Trainer:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.rng = np.random.default_rng(cfg.seed)
         self.extent = max(float(data.bounds[1]), 1e-6)
-        resumed = ck.load_checkpoint(self.run_dir)
+        resumed = ck.load_checkpoint(self.run_dir / ck.CKPT_NAME, CKPT_FORMAT)
         if resumed is not None:
-            params, moments, state = resumed
+            arrays, moments, state = resumed
+            params = SurfelParams.from_numpy(**{k: arrays[k] for k in field_names()})
             self.iteration, self.log, self.elapsed = state["iteration"], state["log"], state["elapsed"]
             self.init_desc = state["init"]
             self.rng = np.random.default_rng(state["rng_seed"])
@@ -193,12 +209,13 @@ class Trainer:
         self.opt = mi.ad.Adam(lr=1.0)
         self._register(params)
         if moments is not None:
-            ck.restore_moments(self.opt, PARAM_KEYS, params, moments)
+            ck.restore_moments(self.opt, PARAM_KEYS, moments, field_from_numpy)
         self.density = DensityController(DensityConfig(**cfg.densify), params.count, self.extent)
         self.targets = [mi.TensorXf(v.image.astype(np.float32)) for v in self.views]
         self.masks = [None if v.mask is None else mi.TensorXf(v.mask[..., None].astype(np.float32))
                       for v in self.views]
         self._rays = {}
+        self.loss_fn = cfg.loss()
 
     # ------------------------------------------------------------- params
     def _install(self, params: SurfelParams):
@@ -243,20 +260,12 @@ class Trainer:
         return self._rays[i]
 
     def loss(self, i: int, img):
-        c = self.cfg
+        """(total, logged parts, buffers) of :class:`Step1Loss` for training view ``i``."""
         parts = self.integ.split(img)
-        total = L.rgb_loss(parts["color"], self.targets[i], c.lambda_ssim)
-        out = {"rgb": total}
-        if c.lambda_d2n > 0 and self.iteration >= c.d2n_from:
-            rays, origin = self._view_rays(i)
-            d2n = L.d2n_loss(parts["normal"], parts["depth_unbiased"], parts["weight"], rays, origin)
-            total = total + c.lambda_d2n * d2n
-            out["d2n"] = d2n
-        if c.lambda_mask > 0 and self.masks[i] is not None and self.cfg.preset == "object":
-            mk = L.mask_loss(parts["weight"], self.masks[i])
-            total = total + c.lambda_mask * mk
-            out["mask"] = mk
-        return total, out, parts
+        lf = self.loss_fn
+        rays = self._view_rays(i) if lf.d2n_active(self.iteration) else None
+        total, logged = lf(parts, self.targets[i], self.masks[i], rays, self.iteration)
+        return total, logged, parts
 
     # ---------------------------------------------------------------- step
     def step(self) -> dict:
@@ -279,8 +288,8 @@ class Trainer:
         self._clamp()
         self.mp.update(self.opt)
         self.iteration += 1
-        stats = {k: float(np.asarray(v).ravel()[0]) for k, v in parts.items()}
-        stats["loss"] = float(np.asarray(total).ravel()[0])
+        stats = dict(parts)
+        stats["loss"] = stats.pop("total")
         c_img = np.asarray(bufs["color"])
         stats["psnr_train"] = psnr(c_img, self.views[i].image)
         stats["nan_grads"] = nan_grads
@@ -337,53 +346,26 @@ class Trainer:
         return {"psnr_test": float(np.mean(ps)), "views": int(len(ps))}
 
     def checkpoint(self):
-        ck.save_checkpoint(self.run_dir, self.params(), self.opt, PARAM_KEYS, {
-            "iteration": self.iteration, "log": self.log, "elapsed": self.elapsed,
-            "init": self.init_desc, "rng_seed": int(self.rng.integers(1 << 31)),
-            "config": dataclasses.asdict(self.cfg)})
+        n = self.params().count
+        ck.save_checkpoint(
+            self.run_dir / ck.CKPT_NAME, CKPT_FORMAT, self.params().to_numpy(), self.opt,
+            PARAM_KEYS, {"iteration": self.iteration, "log": self.log, "elapsed": self.elapsed,
+                         "init": self.init_desc, "rng_seed": int(self.rng.integers(1 << 31)),
+                         "config": dataclasses.asdict(self.cfg)},
+            to_numpy=lambda f, v: field_to_numpy(f, v, n))
+
+    def log_fields(self) -> dict:
+        return {"surfels": self.params().count}
 
 
 def train_radiance(data, run_dir, cfg: RadianceConfig, progress: bool = True) -> dict:
     """Run (or resume) step 1; writes point_cloud.ply, train_log.json, psnr_vs_time.png."""
     tr = Trainer(data, run_dir, cfg, progress)
     run_dir = Path(run_dir)
-    bar = None
-    if progress:
-        bar = tqdm(total=cfg.iterations, initial=tr.iteration, desc="step 1", unit="it", dynamic_ncols=True)
-    t0 = time.perf_counter() - tr.elapsed
-    stopped_early = False
-    while tr.iteration < cfg.iterations:
-        stats = tr.step()
-        tr.elapsed = time.perf_counter() - t0
-        it = tr.iteration
-        if it % cfg.log_every == 0 or it == cfg.iterations or it % cfg.eval_every == 0:
-            rec = {"iteration": it, "time_s": round(tr.elapsed, 3), "surfels": tr.params().count, **stats}
-            if it % cfg.eval_every == 0 or it == cfg.iterations:
-                t_eval = time.perf_counter()
-                rec.update(tr.evaluate(cfg.eval_views))
-                t0 += time.perf_counter() - t_eval        # evaluation time is not training time
-            tr.log.append(rec)
-            if bar is not None:
-                bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{rec.get('psnr_test', stats['psnr_train']):.2f}",
-                                n=tr.params().count)
-        if bar is not None:
-            bar.update(1)
-        if it % cfg.checkpoint_every == 0:
-            tr.checkpoint()
-            ck.atomic_write_text(run_dir / "train_log.json", json.dumps({"summary": None, "log": tr.log}))
-        if cfg.time_limit_s is not None and tr.elapsed > cfg.time_limit_s:
-            stopped_early = True
-            break
-    if bar is not None:
-        bar.close()
-    tr.checkpoint()
+    stopped_early = run_loop(tr, cfg, "step 1", progress, log_dir=run_dir)
     final = tr.evaluate()
     save_ply(tr.params(), str(run_dir / "point_cloud.ply"))
     summary = {"iterations": tr.iteration, "train_seconds": tr.elapsed, "surfels": tr.params().count,
                "init": tr.init_desc, "stopped_early": stopped_early, **final,
                "config": dataclasses.asdict(cfg)}
-    ck.atomic_write_text(run_dir / "train_log.json", json.dumps({"summary": summary, "log": tr.log}, indent=1))
-    plot_psnr(tr.log, run_dir / "psnr_vs_time.png")
-    return summary
-
-
+    return finish(tr, run_dir, summary)

@@ -22,22 +22,20 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-from PIL import Image
 from tqdm import tqdm
 
-from comgs_dr.data.load import load_dataset
+from comgs_dr.core.colorspace import srgb_encode
+from comgs_dr.data.images import write_png8
+from comgs_dr.data.nerf import split_frames
 from comgs_dr.eval import metrics as M
 from comgs_dr.lighting.envmap import OctEnvmap
 from comgs_dr.shading.deferred import DeferredPbr
 from comgs_dr.shading.shade import ShadingConfig
-from comgs_dr.shading.visibility import NoVisibility, SopVisibility, TraceVisibility
-from comgs_dr.sops.probes import ProbeSet
-from comgs_dr.sops.query import ProbeGrid
+from comgs_dr.shading.visibility import make_visibility
 from comgs_dr.surfels import load_ply
-from comgs_dr.surfels.from_mesh import linear_to_srgb
 from comgs_dr.surfels.scene import gbuffer_scene
 from comgs_dr.train import checkpoint as ck
-from comgs_dr.train.run import read_run_info
+from comgs_dr.train.run import load_run_dataset, read_run_info, select_views
 
 
 def align_albedo(pred, gt, mask):
@@ -49,8 +47,9 @@ def align_albedo(pred, gt, mask):
     return pred * s, s
 
 
-def _srgb(x):
-    return linear_to_srgb(np.clip(x, 0, 1))
+def _display(x):
+    """Display sRGB of linear values, clipped to [0, 1] first."""
+    return srgb_encode(np.clip(x, 0.0, 1.0))
 
 
 def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: int = 256,
@@ -58,8 +57,6 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
                 envmap_scale: float = 1.0, out_dir=None, progress: bool = True,
                 max_views: int | None = None) -> dict:
     """Render ``views`` of a finished step-2 run under ``envmap``; write PNGs + metrics."""
-
-
     run_dir = Path(run_dir)
     mdir = Path(material_dir) if material_dir else run_dir / "material"
     log = mdir / "train_log.json"
@@ -67,11 +64,8 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
         raise FileNotFoundError(f"{log} not found: run `comgs decompose {run_dir}` first")
     summary = json.loads(log.read_text())["summary"]
     info = read_run_info(run_dir)
-    data = load_dataset(info["data"], white_background=info["white_background"],
-                        resolution_scale=info["resolution_scale"])
-    vs = data.test if views == "test" else data.train
-    if max_views:
-        vs = [vs[int(i)] for i in np.linspace(0, len(vs) - 1, min(max_views, len(vs))).round()]
+    data = load_run_dataset(run_dir, info)
+    vs = select_views(data.test if views == "test" else data.train, max_views)
     params = load_ply(str(mdir / "point_cloud.ply"))
     env_path = Path(envmap)
     env = OctEnvmap.from_file(env_path, res=256, scale=envmap_scale)
@@ -82,34 +76,23 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
         (Path(info["data"]) / "meta.json").read_text()).get("envmap", "")).resolve() \
         if (Path(info["data"]) / "meta.json").exists() else False
     use_indirect = same_light if indirect is None else indirect
-    if kind == "sops":
-        probes = ProbeSet.load(mdir / "probes.npz")
-        vis = SopVisibility(probes.atlas(), ProbeGrid(probes.positions, probes.radius),
-                            probes.res, summary["config"]["probe_k"])
-    elif kind == "trace":
-        pts = np.asarray(params.means).T
-        size = float(np.linalg.norm(np.percentile(pts, 99.5, 0) - np.percentile(pts, 0.5, 0)))
-        vis = TraceVisibility(scene, summary["config"]["trace_offset"] * size,
-                              summary["config"]["trace_hits"])
-    else:
-        vis = NoVisibility()
+    vis = make_visibility(kind, scene=scene, probes=mdir / "probes.npz",
+                          k=summary["config"]["probe_k"], trace_hits=summary["config"]["trace_hits"],
+                          offset_frac=summary["config"]["trace_offset"])
     pbr = DeferredPbr(scene, env, vis, ShadingConfig(rays=rays, indirect=use_indirect))
     bg = 1.0 if data.white_background else 0.0
     out = Path(out_dir) if out_dir else mdir / f"relight_{env_path.stem}_{views}"
     out.mkdir(parents=True, exist_ok=True)
     gt_dir = Path(info["data"]) / f"{views}_relight" / env_path.stem
-    frames = _frames(Path(info["data"]), views)
+    frames = {Path(fr["file_path"]).name: fr for fr in split_frames(info["data"], views)}
     per_view = []
-    it = range(len(vs))
-    if progress:
-        it = tqdm(it, desc=f"relight {env_path.stem}", unit="view")
-    for i in it:
+    for i in tqdm(range(len(vs)), desc=f"relight {env_path.stem}", unit="view",
+                  disable=not progress):
         v = vs[i]
         with dr.suspend_grad():
             img = np.asarray(pbr.render(i, seed=7, background=bg, display=True))
             pts, geo = pbr.shading_points(i)
-        Image.fromarray((np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)).save(
-            out / f"{v.name.replace('/', '_')}.png")
+        write_png8(out / f"{v.name.replace('/', '_')}.png", img)
         rec = {"view": v.name}
         stem = Path(v.name).name
         gt_p = gt_dir / f"{stem}.exr"
@@ -117,7 +100,7 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
             gt = np.asarray(mi.Bitmap(str(gt_p)), np.float64)         # premultiplied linear
             a = gt[..., 3:4] if gt.shape[-1] > 3 else np.ones_like(gt[..., :1])
             straight = gt[..., :3] / np.maximum(a, 1e-6)
-            gt_disp = a * _srgb(straight) + (1 - a) * bg
+            gt_disp = a * _display(straight) + (1 - a) * bg
             rec["relight_psnr"] = M.psnr(np.clip(img, 0, 1), gt_disp)
             rec["relight_ssim"] = M.ssim(np.clip(img, 0, 1), gt_disp)
         fr = frames.get(stem)
@@ -132,7 +115,7 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
                 pa = pa.reshape(ga.shape[:2] + (3,))
                 al, s = align_albedo(pa, ga[..., :3], mask)
                 m3 = mask[..., None]
-                rec["albedo_psnr"] = M.psnr(_srgb(al) * m3, _srgb(ga[..., :3]) * m3)
+                rec["albedo_psnr"] = M.psnr(_display(al) * m3, _display(ga[..., :3]) * m3)
             if "normal_path" in fr and (base / fr["normal_path"]).exists():
                 gn = np.asarray(mi.Bitmap(str(base / fr["normal_path"])), np.float64)
                 mask = (gn[..., 3] > 0.99) & (W > 0.5) if gn.shape[-1] > 3 else (W > 0.5)
@@ -147,10 +130,3 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
                rays=rays, per_view=per_view)
     ck.atomic_write_text(out / "metrics.json", json.dumps(res, indent=1))
     return res
-
-
-def _frames(root: Path, split: str) -> dict:
-    f = root / f"transforms_{split}.json"
-    if not f.exists():
-        return {}
-    return {Path(fr["file_path"]).name: fr for fr in json.loads(f.read_text()).get("frames", [])}

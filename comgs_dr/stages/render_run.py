@@ -6,38 +6,32 @@ from pathlib import Path
 
 import mitsuba as mi
 import numpy as np
-from PIL import Image
 from tqdm import tqdm
 
-from comgs_dr.data.load import load_dataset
+from comgs_dr.data.images import write_png8
+from comgs_dr.data.nerf import split_frames
 from comgs_dr.eval import metrics as M
 from comgs_dr.surfels import load_ply
 from comgs_dr.surfels.scene import gbuffer_scene
 from comgs_dr.train import checkpoint as ck
-from comgs_dr.train.run import read_run_info
+from comgs_dr.train.run import load_run_dataset, read_run_info
 
 
 def _gt_geometry(data_dir: Path, split: str) -> list:
     """Per-view (normal, depth) ground-truth EXR paths written by `comgs make-dataset`, if any."""
-    f = data_dir / f"transforms_{split}.json"
-    if not f.exists():
-        return []
-    frames = json.loads(f.read_text()).get("frames", [])
     return [(data_dir / fr["normal_path"] if "normal_path" in fr else None,
-             data_dir / fr["depth_path"] if "depth_path" in fr else None) for fr in frames]
+             data_dir / fr["depth_path"] if "depth_path" in fr else None)
+            for fr in split_frames(data_dir, split)]
 
 
 def render_run(run_dir, views: str = "test", progress: bool = True, max_hits: int = 32) -> dict:
     """Render ``views`` ('test' or 'train'); write images and ``metrics_<views>.json``."""
-
-
     run_dir = Path(run_dir)
     info = read_run_info(run_dir)
     ply = run_dir / "point_cloud.ply"
     if not ply.exists():
         raise FileNotFoundError(f"{ply} not found: the run has not finished (resume it with `comgs reconstruct`)")
-    data = load_dataset(info["data"], white_background=info["white_background"],
-                        resolution_scale=info["resolution_scale"])
+    data = load_run_dataset(run_dir, info)
     vs = data.test if views == "test" else data.train
     if not vs:
         raise ValueError(f"the dataset at {info['data']} has no {views} views")
@@ -49,16 +43,13 @@ def render_run(run_dir, views: str = "test", progress: bool = True, max_hits: in
     out_dir = run_dir / f"render_{views}"
     out_dir.mkdir(exist_ok=True)
     per_view = []
-    it = range(len(vs))
-    if progress:
-        it = tqdm(it, desc=f"render {views}", unit="view")
-    for i in it:
+    for i in tqdm(range(len(vs)), desc=f"render {views}", unit="view", disable=not progress):
         v = vs[i]
         b = {k: np.asarray(t) for k, t in integ.split(mi.render(scene, sensor=i)).items()}
         c = np.clip(b["color"], 0, 1)
-        Image.fromarray((c * 255 + 0.5).astype(np.uint8)).save(out_dir / f"{i:03d}_color.png")
+        write_png8(out_dir / f"{i:03d}_color.png", c)
         n_vis = (0.5 * b["normal"] + 0.5 * b["weight"]).clip(0, 1)
-        Image.fromarray((n_vis * 255 + 0.5).astype(np.uint8)).save(out_dir / f"{i:03d}_normal.png")
+        write_png8(out_dir / f"{i:03d}_normal.png", n_vis)
         rec = {"view": v.name, "psnr": M.psnr(c, v.image), "ssim": M.ssim(c, v.image)}
         if i < len(gt_geo):
             npath, dpath = gt_geo[i]

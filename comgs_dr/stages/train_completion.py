@@ -38,8 +38,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-import comgs_dr
 from comgs_dr.core import colorspace, equirect
+from comgs_dr.core.variant import set_variant
 from comgs_dr.data import pano_masks
 from comgs_dr.data.synthetic import shared_data_dir
 from comgs_dr.lighting import completion as C
@@ -278,7 +278,7 @@ def train(cfg: TrainCompletionConfig, progress: bool = True, command: str | None
 
 
 def add_arguments(ap) -> None:
-    """The ``comgs train-completion`` options (also ``python -m comgs_dr.lighting.train_completion``)."""
+    """The ``comgs train-completion`` options (also ``python -m comgs_dr.stages.train_completion``)."""
     d = TrainCompletionConfig()
     ap.add_argument("--out", type=Path, default=d.out, help="weights file (default: the shipped one)")
     ap.add_argument("--data-dir", type=Path, default=d.data_dir, help="training-data cache folder")
@@ -327,7 +327,7 @@ def run_from_args(args) -> int:
 
 if __name__ == "__main__":
 
-    comgs_dr.set_variant("llvm_ad_rgb")
+    set_variant("llvm_ad_rgb")
     _ap = argparse.ArgumentParser(prog="comgs train-completion", description=__doc__,
                                   formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(_ap)

@@ -19,6 +19,7 @@ import numpy as np
 import trimesh
 from PIL import Image
 
+from comgs_dr.core.colorspace import srgb_decode, srgb_encode
 from comgs_dr.surfels.kernel import SH_C0
 from comgs_dr.surfels.params import SurfelParams, sh_coeff_count
 
@@ -44,16 +45,6 @@ class MeshSampleInfo:
 
 
 # --------------------------------------------------------------------- colour
-def srgb_to_linear(c):
-    c = np.asarray(c, np.float64)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(c):
-    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
-    return np.where(c <= 0.0031308, c * 12.92, 1.055 * c ** (1 / 2.4) - 0.055)
-
-
 def sample_texture(image, uv) -> np.ndarray:
     """Bilinear lookup of a PIL image at [N, 2] uv (v up, repeat wrap) -> [N, 3] linear RGB."""
     img = np.asarray(image.convert("RGB"), np.float64) / 255.0      # [H, W, 3] sRGB
@@ -65,7 +56,7 @@ def sample_texture(image, uv) -> np.ndarray:
     x0, y0 = x0.astype(np.int64), y0.astype(np.int64)
 
     def tap(yy, xx):
-        return srgb_to_linear(img[yy % H, xx % W])
+        return srgb_decode(img[yy % H, xx % W])
     return ((1 - fy) * ((1 - fx) * tap(y0, x0) + fx * tap(y0, x0 + 1))
             + fy * ((1 - fx) * tap(y0 + 1, x0) + fx * tap(y0 + 1, x0 + 1)))
 
@@ -123,10 +114,10 @@ def _albedo(mesh, faces_local, bary, texture) -> tuple[np.ndarray, str]:
         if col is not None:
             return np.broadcast_to(col, (len(tri), 3)).copy(), "material"
     elif kind == "vertex":
-        vc = srgb_to_linear(_rgb01(vis.vertex_colors))                # [V, 3]
+        vc = srgb_decode(_rgb01(vis.vertex_colors))                # [V, 3]
         return np.einsum("mk,mkj->mj", bary, vc[tri]), "vertex_colors"
     elif kind == "face":
-        return srgb_to_linear(_rgb01(vis.face_colors))[faces_local], "face_colors"
+        return srgb_decode(_rgb01(vis.face_colors))[faces_local], "face_colors"
     return np.full((len(tri), 3), DEFAULT_GREY), "default"
 
 
@@ -246,7 +237,7 @@ def from_mesh(mesh, n: int, *, seed: int = 0, opacity: float = 0.95, sh_degree: 
                     "using albedo %.1f grey", sources.count("default"), len(parts), DEFAULT_GREY)
     albedo = np.clip(albedo, 0.0, 1.0)
     sh = np.zeros((n, K, 3))
-    sh[:, 0] = (linear_to_srgb(albedo) - 0.5) / SH_C0
+    sh[:, 0] = (srgb_encode(np.clip(albedo, 0.0, 1.0)) - 0.5) / SH_C0
 
     params = SurfelParams.from_numpy(
         means=pos, quats=quats, log_scales=log_scales,

@@ -1,4 +1,10 @@
-"""Atomic checkpoints of a reconstruction run (surfels + optimiser + loop state)."""
+"""Atomic checkpoints: parameter arrays, Adam state (``mi.ad.Adam``) and loop state in one npz.
+
+One format for every trainer: ``p_<name>`` the parameters, ``m_/v_/t_<name>`` the Adam
+moments and step counts of the optimised ones, ``state`` a JSON document carrying
+``format`` (checked on load), the iteration, the log and the config. Files are written
+through a temporary file and ``os.replace``, so an interrupted run never leaves a torn file.
+"""
 from __future__ import annotations
 
 import io
@@ -9,15 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from comgs_dr.surfels.params import (
-    SurfelParams,
-    field_from_numpy,
-    field_names,
-    field_to_numpy,
-)
-
 CKPT_NAME = "checkpoint.npz"
-FORMAT = "comgs_dr.checkpoint/1"
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -40,48 +38,56 @@ def atomic_write_text(path: Path, text: str) -> None:
     atomic_write_bytes(path, text.encode())
 
 
-def save_checkpoint(run_dir: Path, params: SurfelParams, opt, keys: dict, state: dict) -> Path:
-    """Surfels, Adam moments/step counts per field and a JSON-able ``state`` in one npz."""
-    n = params.count
-    arrays = {f"p_{k}": v for k, v in params.to_numpy().items()}
-    for f, key in keys.items():
+def _plain(name, value) -> np.ndarray:
+    return np.asarray(value)
+
+
+def save_checkpoint(path: Path, fmt: str, arrays: dict, opt, keys: dict, state: dict,
+                    to_numpy=_plain) -> Path:
+    """Write ``arrays`` {name: ndarray}, the Adam state of ``keys`` {name: optimiser key}
+    (moments converted by ``to_numpy(name, value)``) and the JSON-able ``state``."""
+    out = {f"p_{k}": v for k, v in arrays.items()}
+    for name, key in keys.items():
         if key in opt.state:
             _, _, _, (t, m, v, _) = opt.state[key]
-            arrays[f"m_{f}"] = field_to_numpy(f, m, n)
-            arrays[f"v_{f}"] = field_to_numpy(f, v, n)
-            arrays[f"t_{f}"] = np.asarray(t, np.uint32)
-    arrays["state"] = np.frombuffer(json.dumps({"format": FORMAT, **state}).encode(), np.uint8)
+            out[f"m_{name}"] = to_numpy(name, m)
+            out[f"v_{name}"] = to_numpy(name, v)
+            out[f"t_{name}"] = np.asarray(t, np.uint32)
+    out["state"] = np.frombuffer(json.dumps({"format": fmt, **state}).encode(), np.uint8)
     buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    path = Path(run_dir) / CKPT_NAME
-    atomic_write_bytes(path, buf.getvalue())
-    return path
+    np.savez(buf, **out)
+    atomic_write_bytes(Path(path), buf.getvalue())
+    return Path(path)
 
 
-def load_checkpoint(run_dir: Path):
-    """(params, moments {field: (t, m, v)} as numpy, state dict) or None if absent."""
-    path = Path(run_dir) / CKPT_NAME
+def load_checkpoint(path: Path, fmt: str):
+    """(arrays {name: ndarray}, moments {name: (t, m, v)}, state) or None if ``path`` is absent.
+    ValueError (naming the file) if it is unreadable or of another format."""
+    path = Path(path)
     if not path.exists():
         return None
     try:
         z = np.load(path)
         state = json.loads(bytes(z["state"]).decode())
+        files = {k: z[k] for k in z.files if k != "state"}
     except Exception as e:  # noqa: BLE001 - any decoding failure means a bad file
         raise ValueError(f"checkpoint {path} is unreadable ({e}); delete it to start over") from e
-    if state.get("format") != FORMAT:
-        raise ValueError(f"checkpoint {path} has format {state.get('format')!r}, expected {FORMAT}")
-    params = SurfelParams.from_numpy(**{k: z[f"p_{k}"] for k in field_names()})
-    moments = {f: (z[f"t_{f}"], z[f"m_{f}"], z[f"v_{f}"]) for f in field_names() if f"m_{f}" in z}
-    return params, moments, state
+    if state.get("format") != fmt:
+        raise ValueError(f"checkpoint {path} has format {state.get('format')!r}, expected {fmt}")
+    arrays = {k[2:]: v for k, v in files.items() if k.startswith("p_")}
+    moments = {k[2:]: (files[f"t_{k[2:]}"], v, files[f"v_{k[2:]}"])
+               for k, v in files.items() if k.startswith("m_")}
+    return arrays, moments, state
 
 
-def restore_moments(opt, keys: dict, params: SurfelParams, moments: dict) -> None:
-    """Put saved Adam moments back into ``opt`` (after its parameters were registered)."""
-    for f, (t, m, v) in moments.items():
-        key = keys.get(f)
+def restore_moments(opt, keys: dict, moments: dict, from_numpy) -> None:
+    """Put saved Adam moments back into ``opt`` (after its parameters were registered);
+    ``from_numpy(name, array, like)`` converts to the parameter's Dr.Jit type."""
+    for name, (t, m, v) in moments.items():
+        key = keys.get(name)
         if key is None or key not in opt.state:
             continue
         value, promoted, lr, (t0, _, _, vmax) = opt.state[key]
-        like = getattr(params, f)
-        opt.state[key] = (value, promoted, lr, (type(t0)(t), field_from_numpy(f, m, like),
-                                                 field_from_numpy(f, v, like), vmax))
+        like = opt[key]
+        opt.state[key] = (value, promoted, lr, (type(t0)(t), from_numpy(name, m, like),
+                                                 from_numpy(name, v, like), vmax))

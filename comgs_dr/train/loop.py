@@ -1,19 +1,79 @@
-"""The training loop shared by step 1 and step 2."""
+"""The one training loop of step 1 and step 2: progress, evaluation schedule, the
+(wall time, metric) log, checkpoints, time limit and resume.
+
+A trainer provides ``iteration``, ``elapsed`` (training seconds so far, restored on resume),
+``log`` (list of records), ``step() -> stats`` (with ``loss`` and ``psnr_train``),
+``evaluate(max_views) -> {'psnr_test', ...}``, ``checkpoint()`` and optionally
+``log_fields() -> dict`` (extra per-record values, e.g. the surfel count). The config gives
+``iterations``, ``log_every``, ``eval_every``, ``eval_views``, ``checkpoint_every`` and
+``time_limit_s``. Every record is ``{"iteration", "time_s", **stats[, psnr_test]}``; evaluation
+time does not count as training time.
+"""
 from __future__ import annotations
 
+import json
+import time
 from pathlib import Path
+
+from tqdm.auto import tqdm
+
+from comgs_dr.train.checkpoint import atomic_write_text
+
+LOG_NAME = "train_log.json"
+
+
+def write_log(out_dir: Path, log: list, summary: dict | None = None, indent: int | None = 1) -> None:
+    """``train_log.json``: {"summary": ..., "log": [records]} (atomic)."""
+    atomic_write_text(Path(out_dir) / LOG_NAME,
+                      json.dumps({"summary": summary, "log": log}, indent=indent))
+
+
+def run_loop(trainer, cfg, desc: str, progress: bool = True, log_dir: Path | None = None) -> bool:
+    """Run ``trainer`` up to ``cfg.iterations`` (from wherever it resumed). With ``log_dir``
+    the log is also written at every checkpoint. Returns True if the time limit stopped it."""
+    bar = tqdm(total=cfg.iterations, initial=trainer.iteration, desc=desc, unit="it",
+               dynamic_ncols=True, disable=not progress)
+    t0 = time.perf_counter() - trainer.elapsed
+    stopped_early = False
+    extra = getattr(trainer, "log_fields", dict)
+    while trainer.iteration < cfg.iterations:
+        stats = trainer.step()
+        trainer.elapsed = time.perf_counter() - t0
+        it = trainer.iteration
+        evaluate = it % cfg.eval_every == 0 or it == cfg.iterations
+        if it % cfg.log_every == 0 or evaluate:
+            rec = {"iteration": it, "time_s": round(trainer.elapsed, 3), **extra(), **stats}
+            if evaluate:
+                t_eval = time.perf_counter()
+                rec.update(trainer.evaluate(cfg.eval_views))
+                t0 += time.perf_counter() - t_eval        # evaluation is not training time
+            trainer.log.append(rec)
+            bar.set_postfix(loss=f"{stats['loss']:.4f}",
+                            psnr=f"{rec.get('psnr_test', stats['psnr_train']):.2f}", **extra())
+        bar.update(1)
+        if it % cfg.checkpoint_every == 0:
+            trainer.checkpoint()
+            if log_dir is not None:
+                write_log(log_dir, trainer.log, indent=None)
+        if cfg.time_limit_s is not None and trainer.elapsed > cfg.time_limit_s:
+            stopped_early = True
+            break
+    bar.close()
+    trainer.checkpoint()
+    return stopped_early
 
 
 def plot_psnr(log: list, path: Path) -> None:
     """PNG of test (and train) PSNR against training wall-clock time."""
-    import matplotlib
+    import matplotlib  # heavy: loaded only when a plot is written
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     ev = [r for r in log if "psnr_test" in r]
     fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
     tr_ = [r for r in log if "psnr_train" in r]
     if tr_:
-        ax.plot([r["time_s"] for r in tr_], [r["psnr_train"] for r in tr_], ".", ms=2, alpha=0.4, label="train view")
+        ax.plot([r["time_s"] for r in tr_], [r["psnr_train"] for r in tr_], ".", ms=2, alpha=0.4,
+                label="train view")
     if ev:
         ax.plot([r["time_s"] for r in ev], [r["psnr_test"] for r in ev], "o-", label="test views")
     ax.set_xlabel("training time [s]")
@@ -23,3 +83,10 @@ def plot_psnr(log: list, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def finish(trainer, out_dir: Path, summary: dict) -> dict:
+    """Write the final log with its summary and the PSNR-against-time plot."""
+    write_log(out_dir, trainer.log, summary)
+    plot_psnr(trainer.log, Path(out_dir) / "psnr_vs_time.png")
+    return summary

@@ -298,17 +298,20 @@ def mask_loss(weight, mask, eps: float = 1e-5) -> mi.Float:
 class Step1Loss:
     """L = L_rgb + λ_d2n L_d2n + λ_mask L_mask (ComGS reconstruction step 1).
 
-    ``d2n_from_iteration``: the depth–normal term is off before this iteration, as 2DGS
-    enables its normal loss at 7k of 30k iterations; the default 1400 = 7000 / 5 follows
-    the ×1/5 schedule of ``surfels.density.DensityConfig`` (stop 15000 → 3000).
+    ``d2n_from_iteration``: the depth–normal term is off before this iteration (2DGS enables
+    its normal loss at 7k of 30k). The defaults are those of ``RadianceConfig`` (object
+    preset), which builds this loss with ``RadianceConfig.loss()``.
     """
-    lambda_d2n: float = 0.05
+    lambda_d2n: float = 0.2
     lambda_mask: float = 0.05
     lambda_ssim: float = 0.2
-    d2n_from_iteration: int = 1400
+    d2n_from_iteration: int = 300
     d2n_min_weight: float = 0.5
     detach_depth_normal: bool = False
     mask_eps: float = 1e-5
+
+    def d2n_active(self, iteration: int) -> bool:
+        return self.lambda_d2n > 0 and iteration >= self.d2n_from_iteration
 
     def __call__(self, buffers: dict, gt, mask=None, rays=None, iteration: int = 0):
         """Total loss and its parts.
@@ -329,7 +332,7 @@ class Step1Loss:
         rgb = l1v + self.lambda_ssim * (1.0 - ssimv)
         total, zero = rgb, mi.Float(0.0)
         d2n = mk = zero
-        if self.lambda_d2n > 0 and iteration >= self.d2n_from_iteration:
+        if self.d2n_active(iteration):
             missing = [k for k in ("normal", "depth_unbiased", "weight") if k not in buffers]
             if missing:
                 raise ValueError(f"Step1Loss: L_d2n (iteration {iteration} ≥ "

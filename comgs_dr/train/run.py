@@ -4,14 +4,18 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from comgs_dr.train import checkpoint as ck
+import numpy as np
+
+from comgs_dr.data.load import load_dataset
+from comgs_dr.train.checkpoint import atomic_write_text
 
 RUN_FILE = "run.json"
 
 
-def write_run_info(run_dir: Path, data_dir, preset: str, resolution_scale: int, white_background: bool):
+def write_run_info(run_dir: Path, data_dir, preset: str, resolution_scale: int,
+                   white_background: bool) -> None:
     Path(run_dir).mkdir(parents=True, exist_ok=True)
-    ck.atomic_write_text(Path(run_dir) / RUN_FILE, json.dumps({
+    atomic_write_text(Path(run_dir) / RUN_FILE, json.dumps({
         "data": str(Path(data_dir).resolve()), "preset": preset,
         "resolution_scale": resolution_scale, "white_background": white_background}, indent=1))
 
@@ -21,3 +25,17 @@ def read_run_info(run_dir: Path) -> dict:
     if not p.exists():
         raise FileNotFoundError(f"{p} not found: is {run_dir} a `comgs reconstruct` run folder?")
     return json.loads(p.read_text())
+
+
+def load_run_dataset(run_dir: Path, info: dict | None = None):
+    """The dataset of a run, loaded as step 1 loaded it (background, resolution scale)."""
+    info = info or read_run_info(run_dir)
+    return load_dataset(info["data"], white_background=info["white_background"],
+                        resolution_scale=info["resolution_scale"])
+
+
+def select_views(views: list, max_views: int | None) -> list:
+    """At most ``max_views`` views, evenly spread (all when None)."""
+    if not max_views or max_views >= len(views):
+        return list(views)
+    return [views[int(i)] for i in np.linspace(0, len(views) - 1, max_views).round()]

@@ -1,0 +1,54 @@
+"""Stage configs on the command line: one ``--flag`` per dataclass field, and back.
+
+Every stage has one config dataclass; :func:`add_config_arguments` adds a flag for each of
+its scalar fields (``lambda_d2n`` → ``--lambda-d2n``) that the parser does not already have,
+with no default of its own, so :func:`config_from_args` passes only what the user typed and
+the dataclass (or its named preset) keeps every other default. Hand-written flags with
+``dest`` equal to a field name are picked up the same way.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import typing
+
+
+def _scalar_type(tp):
+    """int/float/str/bool for ``T`` or ``T | None`` annotations, else None."""
+    if isinstance(tp, str):
+        tp = {"int": int, "float": float, "str": str, "bool": bool}.get(
+            tp.replace(" | None", "").replace("None | ", ""), None)
+        return tp
+    args = [a for a in typing.get_args(tp) if a is not type(None)]
+    if len(args) == 1:
+        tp = args[0]
+    return tp if tp in (int, float, str, bool) else None
+
+
+def _parse_bool(s: str) -> bool:
+    v = s.strip().lower()
+    if v in ("1", "true", "yes", "on"):
+        return True
+    if v in ("0", "false", "no", "off"):
+        return False
+    raise argparse.ArgumentTypeError(f"expected true/false, got {s!r}")
+
+
+def add_config_arguments(parser: argparse.ArgumentParser, cls, exclude=()) -> None:
+    """Add ``--field-name`` for every scalar field of dataclass ``cls`` not yet in ``parser``."""
+    taken = {a.dest for a in parser._actions}
+    defaults = cls()
+    group = parser.add_argument_group(f"{cls.__name__} fields (defaults from the config)")
+    for f in dataclasses.fields(cls):
+        tp = _scalar_type(f.type)
+        if f.name in taken or f.name in exclude or tp is None:
+            continue
+        group.add_argument("--" + f.name.replace("_", "-"), dest=f.name, default=None,
+                           type=_parse_bool if tp is bool else tp, metavar=tp.__name__.upper(),
+                           help=f"(default {getattr(defaults, f.name)!r})")
+
+
+def config_overrides(args: argparse.Namespace, cls) -> dict:
+    """The fields of ``cls`` that ``args`` sets (flags left at None are not overrides)."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    return {k: v for k, v in vars(args).items() if k in names and v is not None}
