@@ -19,10 +19,12 @@ import dataclasses
 import sys
 
 from comgs_dr import set_variant
+from comgs_dr.core.config import add_config_arguments, config_overrides
 from comgs_dr.data.load import load_dataset
 from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
 from comgs_dr.demo import DemoConfig, run_demo, scene_dataset_config
 from comgs_dr.lighting import backends
+from comgs_dr.shading.visibility import KINDS
 from comgs_dr.stages import train_completion
 from comgs_dr.stages.decompose import MaterialConfig, train_material
 from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light, write_outputs
@@ -162,7 +164,8 @@ def _cmd_demo(args) -> int:
 def _add_reconstruct(sub) -> None:
     p = sub.add_parser("reconstruct", help="step 1: surfel radiance + geometry from images",
                        description="Fit surfels to a NeRF-synthetic, COLMAP or LLFF folder. Resumes "
-                                   "from RUN_DIR/checkpoint.npz when present.")
+                                   "from RUN_DIR/checkpoint.npz when present. Every scalar field "
+                                   "of RadianceConfig is a flag (--lambda-d2n, --lr-means, ...).")
     p.add_argument("data", metavar="DATA_DIR")
     p.add_argument("--out", required=True, metavar="RUN_DIR")
     kind = p.add_mutually_exclusive_group()
@@ -174,16 +177,15 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--resolution-scale", "-r", type=int, default=1, choices=(1, 2, 4, 8))
     p.add_argument("--white-background", action="store_true")
     p.add_argument("--init", help="auto | hull | points | random | PATH.ply")
-    p.add_argument("--time-limit", type=float, help="stop (and checkpoint) after this many seconds")
-    p.add_argument("--lambda-d2n", type=float, help="depth-normal prior weight (default: config's)")
-    p.add_argument("--d2n-from", type=int, help="iteration the depth-normal prior starts at")
+    p.add_argument("--time-limit", type=float, dest="time_limit_s",
+                   help="stop (and checkpoint) after this many seconds")
     p.add_argument("--densify", action="store_true",
                    help="2DGS clone/split + opacity resets (densify until half of the run, reset "
                         "at its quarter and half; default: prune only, measured better on both "
                         "presets within CPU budgets; useful after a random init)")
-    p.add_argument("--seed", type=int, default=0)
     p.add_argument("--variant", default="auto")
     p.add_argument("--quiet", action="store_true")
+    add_config_arguments(p, RadianceConfig, exclude=("preset",))
     p.set_defaults(func=_cmd_reconstruct, preset="object")
 
 
@@ -191,21 +193,13 @@ def _cmd_reconstruct(args) -> int:
     set_variant(args.variant)
     data = load_dataset(args.data, white_background=args.white_background,
                         resolution_scale=args.resolution_scale)
-    kw = {"preset": args.preset, "seed": args.seed}
-    if args.iterations is not None:
-        kw["iterations"] = args.iterations
-    if args.init:
-        kw["init"] = args.init
-    if args.time_limit:
-        kw["time_limit_s"] = args.time_limit
-    if args.lambda_d2n is not None:
-        kw["lambda_d2n"] = args.lambda_d2n
-    if args.d2n_from is not None:
-        kw["d2n_from"] = args.d2n_from
+    kw = config_overrides(args, RadianceConfig)
+    kw.pop("densify", None)
     if args.densify:
         kw["densify"] = scaled_density_schedule(kw.get("iterations", RadianceConfig.iterations))
+    cfg = RadianceConfig.from_preset(args.preset, **kw)
     write_run_info(args.out, args.data, args.preset, args.resolution_scale, args.white_background)
-    s = train_radiance(data, args.out, RadianceConfig(**kw), progress=not args.quiet)
+    s = train_radiance(data, args.out, cfg, progress=not args.quiet)
     print(f"step 1 done: {s['iterations']} iterations in {s['train_seconds']:.0f} s, {s['surfels']} surfels, "
           f"test PSNR {s['psnr_test']:.2f} dB -> {args.out}/point_cloud.ply")
     return 0
@@ -232,36 +226,33 @@ def _cmd_render(args) -> int:
 # ----------------------------------------------------------------------------- decompose / relight
 
 def _add_decompose(sub) -> None:
-    d = MaterialConfig()
     p = sub.add_parser("decompose", help="step 2: materials + env map + SOPs from a step-1 run",
                        description="Place and bake Surface Octahedral Probes, then optimise "
                                    "albedo/roughness/metallic, an octahedral env map and the "
                                    "probe textures with deferred PBR. Writes RUN_DIR/material "
-                                   "(or --out); resumes from its checkpoint.npz.")
+                                   "(or --out); resumes from its checkpoint.npz. Every scalar "
+                                   "field of MaterialConfig is a flag (--lr-env, --probe-res, ...).")
     p.add_argument("run", metavar="RUN_DIR")
     p.add_argument("--out", metavar="DIR", help="output folder (default RUN_DIR/material)")
-    p.add_argument("--visibility", choices=("sops", "trace", "none"), default=d.visibility,
+    p.add_argument("--visibility", choices=KINDS,
                    help="occlusion/indirect source (default sops; trace = per-iteration "
                         "ray tracing baseline)")
-    p.add_argument("--iterations", type=int, default=d.iterations)
-    p.add_argument("--rays", type=int, default=d.rays, help=f"S_r (default {d.rays})")
-    p.add_argument("--probes", type=int, default=d.probe_count, dest="probe_count",
-                   help=f"number of SOPs (default {d.probe_count})")
-    p.add_argument("--env-res", type=int, default=d.env_res)
-    p.add_argument("--no-indirect", action="store_true", help="leave out the indirect term")
-    p.add_argument("--time-limit", type=float, help="stop (and save) after this many seconds")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--rays", type=int, help=f"S_r (default {MaterialConfig.rays})")
+    p.add_argument("--probes", type=int, dest="probe_count",
+                   help=f"number of SOPs (default {MaterialConfig.probe_count})")
+    p.add_argument("--no-indirect", dest="indirect", action="store_const", const=False,
+                   help="leave out the indirect term")
+    p.add_argument("--time-limit", type=float, dest="time_limit_s",
+                   help="stop (and save) after this many seconds")
     p.add_argument("--variant", default="auto")
     p.add_argument("--quiet", action="store_true")
+    add_config_arguments(p, MaterialConfig)
     p.set_defaults(func=_cmd_decompose)
 
 
 def _cmd_decompose(args) -> int:
     set_variant(args.variant)
-    cfg = MaterialConfig(visibility=args.visibility, iterations=args.iterations, rays=args.rays,
-                         probe_count=args.probe_count, env_res=args.env_res,
-                         indirect=not args.no_indirect, seed=args.seed,
-                         time_limit_s=args.time_limit)
+    cfg = MaterialConfig(**config_overrides(args, MaterialConfig))
     s = train_material(args.run, args.out, cfg, progress=not args.quiet)
     sp = s["median_step_split_s"]
     print(f"step 2 ({cfg.visibility}) done: {s['iterations']} iterations in "
