@@ -2,7 +2,7 @@
 # Idempotent set-up for comgs_dr on Debian/Ubuntu, then optionally run the demo or the tests.
 #   bash setup.sh            # set up only
 #   bash setup.sh demo       # set up if needed, then `comgs demo` (no download, writes out/demo/)
-#   bash setup.sh test       # set up if needed, then the whole test suite
+#   bash setup.sh test       # set up if needed, then lint-imports and the whole test suite
 set -euo pipefail
 cd "$(dirname "$0")"
 VENV="${COMGS_VENV:-.venv}"
@@ -31,7 +31,7 @@ fi
 
 case "${1:-}" in
   demo) shift; exec "$VENV/bin/comgs" demo "$@" ;;
-  test) shift; exec "$VENV/bin/python" -m pytest -q "$@" ;;
+  test) shift; "$VENV/bin/lint-imports"; exec "$VENV/bin/python" -m pytest -q "$@" ;;
   "") echo "[setup] done. Activate with: source $VENV/bin/activate" ;;
   *) echo "usage: bash setup.sh [demo|test] [extra args]" >&2; exit 2 ;;
 esac

@@ -48,7 +48,7 @@ def _add_make_dataset(sub) -> None:
         description="Object dataset in the SynCom-Object protocol: random upper-hemisphere "
                     "training views, test views on three latitude circles, G-buffer ground "
                     "truth and relit test views. Omitted values use the defaults of "
-                    "comgs_dr.eval.synthetic.ObjectDatasetConfig.")
+                    "comgs_dr.data.synthetic.ObjectDatasetConfig.")
     o.add_argument("--mesh", metavar="M",
                    help="OBJ/PLY mesh (default: the shared Spot mesh, if present)")
     o.add_argument("--envmap", metavar="E",

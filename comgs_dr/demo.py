@@ -1,7 +1,7 @@
 """``comgs demo``: the foundation end to end on embedded, procedural inputs (no download).
 
 1. a procedural object (torus + sphere, Z-up PLY) and a procedural HDR sky with a sun;
-2. a small SynCom-style dataset path-traced by Mitsuba (:mod:`comgs_dr.eval.synthetic`);
+2. a small SynCom-style dataset path-traced by Mitsuba (:mod:`comgs_dr.data.synthetic`);
 3. surfels sampled on the object (:func:`comgs_dr.surfels.from_mesh`), saved as PLY;
 4. G-buffers of a test view compared with the path-traced ground truth (normal, depth);
 5. a short differentiable fit of the surfel colours (SH) to the training views with

@@ -1,4 +1,4 @@
-"""Tests of comgs_dr.lighting.brdf: samplers (chi-square), energy, reciprocity, AD
+"""Tests of comgs_dr.shading.brdf: samplers (chi-square), energy, reciprocity, AD
 gradients vs finite differences, extremes, Hammersley sets, Monte Carlo consistency."""
 import drjit as dr
 import mitsuba as mi

@@ -1,6 +1,6 @@
 """Gradients of the G-buffer targets w.r.t. every surfel parameter.
 
-Three tiers (DESIGN §5):
+Three tiers:
 1. the symbolic adjoint pass equals plain AD through the unrolled reference;
 2. AD directional derivatives equal central differences with the hit buffer
    held fixed (so visibility jumps, ignored by design, cannot interfere);

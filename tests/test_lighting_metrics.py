@@ -198,7 +198,7 @@ class TestSpheres:
             assert np.all(np.abs(img[0, i, j] - mean) < 4 * se + 0.01 * np.abs(mean))
 
     def test_numpy_ggx_matches_project_brdf(self, variant, rng):
-        """ggx_specular_np reproduces lighting.brdf.eval_brdf_split (float32 Dr.Jit)."""
+        """ggx_specular_np reproduces shading.brdf.eval_brdf_split (float32 Dr.Jit)."""
         import mitsuba as mi
 
         from comgs_dr.shading import brdf

@@ -1,4 +1,4 @@
-"""Dataset loaders of reconstruction step 1 (comgs_dr.recon.data).
+"""Dataset loaders of reconstruction step 1 (comgs_dr.data).
 
 Tiny datasets (<= 26x18 px, <= 10 views) are written here with numpy + PIL + json; the
 ground truth is an OpenCV pinhole projection u = K (R X + t) of known points. Camera
@@ -164,7 +164,7 @@ def test_nerf_holdout_and_max_views(tmp_path, rng):
 
 
 def test_generator_dataset_roundtrip(tmp_path):
-    """A dataset from comgs_dr.eval.synthetic loads with the cameras it recorded."""
+    """A dataset from comgs_dr.data.synthetic loads with the cameras it recorded."""
     trimesh = pytest.importorskip("trimesh")
     from comgs_dr.data import synthetic as syn
     trimesh.creation.icosphere(subdivisions=1, radius=0.7).export(tmp_path / "ball.ply")

@@ -1,4 +1,4 @@
-"""Step-1 reconstruction losses (comgs_dr.recon.losses): values vs a torch reference
+"""Step-1 reconstruction losses (comgs_dr.train.losses): values vs a torch reference
 of the 3DGS SSIM, gradients (autograd reference, central differences), depth→normal
 on analytic surfaces, degenerate inputs and shape errors. Images ≤ 32×32."""
 import math

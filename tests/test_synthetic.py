@@ -1,4 +1,4 @@
-"""Synthetic object dataset generator (comgs_dr.eval.synthetic) and `comgs make-dataset`.
+"""Synthetic object dataset generator (comgs_dr.data.synthetic) and `comgs make-dataset`.
 
 Tiny sizes throughout (16 px, 3+3 views, 4 spp). Most tests use an icosphere PLY and
 synthetic env maps written here; tests marked by ``needs_shared`` use /work/shared/data.

@@ -3,7 +3,7 @@
 Used by the environment map and by the Surface Octahedral Probes (paper, "Illumination
 Modeling": both are stored as octahedral textures).
 
-Mapping (Praun & Hoppe 2003; DESIGN.md §4): a unit direction d goes to
+Mapping (Praun & Hoppe 2003): a unit direction d goes to
 p = d.xy / |d|₁ ∈ [-1, 1]²; the lower hemisphere (d.z < 0) is folded into the corners,
 p ← (1 − |p.yx|)·sign(p). Texture coordinates are uv = (p + 1)/2; texel (i, j) of an R×R
 tile has its centre at ((i + 0.5)/R, (j + 0.5)/R).
@@ -173,7 +173,8 @@ class BorderRefresher:
     """Re-copies the wrap border of a flat bordered atlas in place (after an optimiser step).
 
     Keeping the *bordered* atlas as the optimised parameter and refreshing its border
-    outside the differentiated graph is the fast recipe measured in DESIGN.md §3.
+    outside the differentiated graph was measured faster than building the border inside
+    the graph; the gradient that bilinear lookups put on border texels is dropped by it.
     """
 
     def __init__(self, n_tiles: int, res: int, channels: int):
@@ -234,7 +235,7 @@ _VEC = {1: "Float", 3: "Color3f", 4: "Vector4f"}
 
 def expand_mode(source):
     """``ReduceMode.Expand`` for sources that need gradients (fast backward scatter-add,
-    DESIGN.md §3), the default otherwise: Expand-mode gathers from *non-differentiable*
+    measured), the default otherwise: Expand-mode gathers from *non-differentiable*
     sources inside a graph that is later differentiated were seen to segfault Dr.Jit 1.5."""
     return dr.ReduceMode.Expand if dr.grad_enabled(source) else dr.ReduceMode.Auto
 
@@ -244,7 +245,7 @@ def lookup(atlas, taps: Taps, channels: int):
     ``mi.Color3f`` or ``mi.Vector4f``.
 
     One vector gather per tap, with ``ReduceMode.Expand`` so the backward scatter-add is
-    fast (DESIGN.md §3).
+    fast (measured).
     """
     if channels not in _VEC:
         raise ValueError(f"atlas lookups support 1, 3 or 4 channels, got {channels}")

@@ -4,7 +4,7 @@ A real scene capture comes with COLMAP's sparse cloud: surface points triangulat
 least two views, with colour and a little noise. Synthetic scene datasets get the same from
 the ground-truth mesh: area-uniform surface samples that at least ``min_views`` training
 cameras see unoccluded, coloured by a training image, jittered by ``noise`` × the scene radius.
-The NeRF-synthetic loader (``recon.data_nerf``) reads the file when it is present.
+The NeRF-synthetic loader (``data.nerf``) reads the file when it is present.
 """
 from __future__ import annotations
 

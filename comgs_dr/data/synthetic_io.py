@@ -1,4 +1,4 @@
-"""Mitsuba scene building, rendering and image files for :mod:`comgs_dr.eval.synthetic`."""
+"""Mitsuba scene building, rendering and image files for :mod:`comgs_dr.data.synthetic`."""
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -1,6 +1,6 @@
 """Dataset records of reconstruction step 1: cameras (Mitsuba convention), views, scenes.
 
-Camera convention (DESIGN.md sec. 4): ``to_world`` is Mitsuba's sensor camera-to-world
+Camera convention: ``to_world`` is Mitsuba's sensor camera-to-world
 (camera space: +X left, +Y up, +Z forward). Pixel coordinates are continuous with the
 top-left image corner at (0, 0) and pixel (i, j) covering [i, i+1] x [j, j+1] (COLMAP's
 convention; Mitsuba's film position = pixel / (W, H)). Intrinsics map to Mitsuba as

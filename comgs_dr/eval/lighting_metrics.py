@@ -22,7 +22,7 @@ sphere's centre pixel reflects c (behind the viewer). ``ARRAY_AZIMUTHS`` (0°, 9
 * ``mirror``: perfect specular, reflectance 1: L(r), r = 2(n·c)n − c, bilinear lookup
   (wraps in u) of the map at its own resolution.
 * ``matte_silver``: metallic 1, roughness 0.35, F0 = albedo = ``SILVER_F0``, the specular
-  lobe of the project's simplified Disney BRDF (``lighting.brdf``: GGX D with
+  lobe of the project's simplified Disney BRDF (``shading.brdf``: GGX D with
   α = max(r², 1e-3), height-correlated Smith, Schlick Fresnel with ω_o·h).
 * ``diffuse``: Lambert, albedo 0.8.
 
@@ -115,7 +115,7 @@ def sphere_geometry(size: int = 64, azimuth_deg: float = 0.0):
 
 
 # ---------------------------------------------------------------------------------------
-# BRDF (NumPy copy of lighting.brdf's specular lobe)
+# BRDF (NumPy copy of shading.brdf's specular lobe)
 
 def _smith_s(alpha, cos):
     a2 = alpha * alpha
@@ -123,7 +123,7 @@ def _smith_s(alpha, cos):
 
 
 def ggx_specular_np(roughness: float, cos_o, cos_i, cos_d, cos_h):
-    """(D·G2/(4 cos_o cos_i), (1 − cos_d)⁵) of ``lighting.brdf.eval_brdf_split``'s specular
+    """(D·G2/(4 cos_o cos_i), (1 − cos_d)⁵) of ``shading.brdf.eval_brdf_split``'s specular
     lobe, so that f_spec = (F0·a + (1 − F0)·a·b) with a, b the two returned arrays; cos_d =
     ω_o·h, cos_h = n·h. Zero where cos_o ≤ 0 or cos_i ≤ 0."""
     alpha = max(float(roughness) ** 2, ALPHA_MIN)

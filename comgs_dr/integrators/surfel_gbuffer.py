@@ -48,9 +48,9 @@ class SurfelGBufferBase:
        - K, the largest number of surfels composited per ray (Default: 32)
      * - epsilon
        - |float|
-       - Origin advance past each hit in scene units; ≤ 0 picks 1/1000 of the
-         surfels' proxy depth jitter (see the ``surfels`` shape), at least 1e-7 of the
-         scene's bounding-box diagonal (Default: -1)
+       - Origin advance past each hit in scene units; ≤ 0 picks 1/200 of the
+         surfels' proxy depth jitter (:func:`comgs_dr.surfels.composite.auto_epsilon`);
+         every step also advances at least ~4 float32 ulps of the origin (Default: -1)
      * - targets
        - |string|
        - Comma-separated subset of ``color, weight, depth, depth_unbiased, normal,

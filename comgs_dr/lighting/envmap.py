@@ -3,7 +3,7 @@
 Paper, "Illumination Modeling": direct light L_dir is a learnable environment map stored as
 an octahedral texture (256² in sec. 4.1). Here the map is parameterised by its log radiance
 θ (positive radiance exp θ, scale-free Adam steps, HDR up to ~1e6 without overflow), kept
-as a bordered atlas (``sops.octahedral``) so bilinear lookups are seamless.
+as a bordered atlas (``core.octahedral``) so bilinear lookups are seamless.
 
 Importance sampling picks a texel with probability ∝ luminance × texel solid angle (plus a
 small floor so every direction has pdf > 0), then a uniform point inside it. The solid-angle

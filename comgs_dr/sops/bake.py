@@ -2,7 +2,7 @@
 
 For probe k and texel t, rays leave the probe position p_k in the texel's direction(s);
 the surfel composite along each ray gives occlusion O = 1 − T and indirect radiance L_in
-(``integrators.visibility``). With ``supersample = s`` each texel averages s×s stratified
+(``surfels.trace``). With ``supersample = s`` each texel averages s×s stratified
 directions inside it (s = 1: the texel centre).
 """
 from __future__ import annotations

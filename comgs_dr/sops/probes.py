@@ -4,7 +4,7 @@ Paper, "Illumination Modeling": each SOP stores an indirect-radiance texture L_i
 occlusion texture O (16² octahedral texels in sec. 4.1). Both live in one 4-channel
 atlas (RGB = linear indirect radiance, A = occlusion ∈ [0, 1]) so one vector gather per
 bilinear tap fetches both. In memory the atlas carries the 1-texel octahedral wrap border
-(``sops.octahedral``); files hold the interior only.
+(``core.octahedral``); files hold the interior only.
 
 File format (``.npz``): ``positions`` [P,3] f32, ``normals`` [P,3] f32, ``texture``
 [P,R,R,4] f32 (interior), ``radius`` (query radius), ``meta`` (JSON string: version,

@@ -2,7 +2,7 @@
 
 Paper eq. (Multi-Target Rendering): B = Σ_i T_i α_i b_i, T_i = Π_{j<i} (1 − α_j).
 
-DESIGN §3 scheme, in three passes that all recompute t, (u, v), α and b_i
+The scheme, in three passes that all recompute t, (u, v), α and b_i
 analytically from the gathered parameters (:func:`eval_surfel`):
 
 * :func:`trace_composite` — primal, no AD: trace the surfel proxies, keep up

@@ -7,7 +7,7 @@ of a disc of the mean area per surfel. Albedo comes from the mesh texture
 (bilinear, texels linearised with the sRGB transfer function), vertex/face
 colours, or the material colour; the SH DC colour is the sRGB display value of
 that albedo, DC = (srgb(albedo) − 0.5)/C0, so the radiance field shows the texture
-as an sRGB image (DESIGN §4).
+as an sRGB image (3DGS convention).
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Equirectangular panoramas of a surfel scene seen from one point (no AD).
 
 For every pixel of an H×W equirect image, rays leave ``position`` and the surfels along them
-are composited front to back (:func:`compositing.trace_composite`), giving coverage
+are composited front to back (:func:`comgs_dr.surfels.composite.trace_composite`), giving coverage
 W = 1 − T, the radiance-field colour, the depth and the normal of what surrounds the point
 (e.g. the lighting / occlusion environment of an object to be inserted there).
 

@@ -9,8 +9,8 @@ Coplanar surfels (flat faces of ``from_mesh``, clones of densification) would
 share one hit distance, and a tracer that advances the ray by ε past each hit
 would find only one of them. Each proxy quad is therefore shifted along its
 normal by a deterministic per-surfel offset in ±``proxy_jitter``/2
-(PROXY_JITTER · bounding-box diagonal); the integrators advance by 1/1000 of
-that, and all their values still come from the unshifted analytic surfel.
+(PROXY_JITTER · bounding-box diagonal); the integrators advance by 1/200 of
+that (``composite.auto_epsilon``), and all their values still come from the unshifted analytic surfel.
 """
 from __future__ import annotations
 
