@@ -44,6 +44,7 @@ from comgs_dr.data import pano_masks
 from comgs_dr.data.synthetic import shared_data_dir
 from comgs_dr.lighting import completion as C
 from comgs_dr.lighting import pano_data as P
+from comgs_dr.lighting.backends import DEFAULT_WEIGHTS
 from comgs_dr.lighting.hdr import expose
 
 log = logging.getLogger(__name__)
@@ -54,7 +55,7 @@ INDOOR_HINTS = ("interior", "warehouse", "room", "indoor", "studio", "hall", "of
 
 @dataclass
 class TrainCompletionConfig:
-    out: Path = Path(__file__).parent / "weights" / "completion.pt"
+    out: Path = DEFAULT_WEIGHTS                # the shipped weights (comgs_dr/lighting/weights)
     data_dir: Path = Path("out/completion_data")
     maps_dir: Path | None = None           # default: shared/data/hdri beside the checkout
     held_out: tuple = HELD_OUT
