@@ -326,6 +326,7 @@ def _add_estimate_light(sub) -> None:
                         "({'xi_b': [L, D], 'xi_d': [L, D]})")
     p.add_argument("--steps", type=int, default=30, help="diffusion steps (backend diffusers)")
     p.add_argument("--variant", default="auto")
+    add_config_arguments(p, EstimateConfig)
     p.set_defaults(func=_cmd_estimate_light)
 
 
@@ -342,9 +343,10 @@ def _estimate_backend(args):
 
 def _cmd_estimate_light(args) -> int:
     set_variant(args.variant)
-    cfg = EstimateConfig(width=args.width, height=args.height, max_hits=args.max_hits,
-                         exclude_radius=args.exclude_radius, label=args.label,
-                         oct_res=args.oct_res, supersample=args.supersample)
+    kw = config_overrides(args, EstimateConfig)
+    if "net_resolution" in kw:
+        kw["net_resolution"] = tuple(kw["net_resolution"])
+    cfg = EstimateConfig(**kw)
     r = estimate_light(args.scene, args.at, cfg, _estimate_backend(args))
     paths = write_outputs(r, args.out)
     print(f"coverage {100 * r['coverage']:.1f}%, backend {r['meta']['backend']}, "
