@@ -16,7 +16,6 @@ import logging
 import os
 
 import numpy as np
-import trimesh
 from PIL import Image
 
 from comgs_dr.core.colorspace import srgb_decode, srgb_encode
@@ -145,6 +144,7 @@ def frame_to_quat(R) -> np.ndarray:
 
 def _parts(mesh) -> list:
     """A path, Trimesh or Scene -> list of Trimesh in world coordinates."""
+    import trimesh  # heavy (0.5 s): loaded when a mesh is sampled, not by `import comgs_dr`
     src = mesh
     if isinstance(mesh, (str, os.PathLike)):
         src = os.fspath(mesh)
