@@ -116,7 +116,6 @@ def _make_object(args) -> int:
 
 
 def _make_scene(args) -> int:
-
     if args.points < 0:
         raise SystemExit("comgs make-dataset scene: --points must be >= 0")
     cfg = scene_dataset_config(args.out, args.n_train, args.n_test, args.resolution, args.points,

@@ -34,7 +34,7 @@ from comgs_dr.eval.metrics import psnr
 from comgs_dr.lighting.envmap import OctEnvmap
 from comgs_dr.shading.deferred import DeferredPbr
 from comgs_dr.shading.shade import ShadingConfig, shade
-from comgs_dr.shading.visibility import make_visibility
+from comgs_dr.shading.visibility import KINDS, make_visibility
 from comgs_dr.sops.bake import bake
 from comgs_dr.sops.placement import PlacementConfig, place_probes
 from comgs_dr.sops.probes import ProbeSet
@@ -83,7 +83,7 @@ class MaterialConfig:
     time_limit_s: float | None = None
 
     def __post_init__(self):
-        if self.visibility not in ("sops", "trace", "none"):
+        if self.visibility not in KINDS:
             raise ValueError(f"MaterialConfig.visibility must be sops, trace or none, got "
                              f"{self.visibility!r}")
         if self.iterations < 1 or self.rays < 1:
@@ -97,7 +97,6 @@ MAT_KEYS = ("surfels.albedo", "surfels.roughness", "surfels.metallic")
 class MaterialTrainer:
     def __init__(self, run_dir, out_dir=None, cfg: MaterialConfig = MaterialConfig(),
                  progress: bool = True, data=None):
-
         self.cfg, self.progress = cfg, progress
         self.run_dir = Path(run_dir)
         self.out_dir = Path(out_dir) if out_dir else self.run_dir / "material"
