@@ -69,6 +69,18 @@ def _add_make_dataset(sub) -> None:
     o.add_argument("--no-texture", action="store_true", help="ignore the mesh texture")
     o.add_argument("--up", choices=("y", "z"), dest="up_axis", help="up axis of the mesh file "
                    "(default y)")
+    o.add_argument("--rings", type=float, nargs="+", dest="train_rings_deg", metavar="ELEV",
+                   help="training views evenly on these elevation rings (degrees; default: "
+                        "random in the upper hemisphere)")
+    o.add_argument("--fov", type=float, dest="fov_deg", metavar="DEG",
+                   help="field of view in degrees (default 40)")
+    o.add_argument("--radius", type=float, metavar="R",
+                   help="camera distance from the object's centre (default: fit the view)")
+    o.add_argument("--half-extent", type=float, dest="half_extent", metavar="H",
+                   help="largest half side of the object's bounding box (default 1)")
+    o.add_argument("--base-color", type=float, nargs=3, dest="base_color", metavar="C",
+                   help="linear base colour without texture (default 0.6 0.6 0.6)")
+    o.add_argument("--roughness", type=float, metavar="R", help="principled roughness (default 0.5)")
     o.add_argument("--sfm-points", type=int, dest="sfm_points", metavar="N",
                    help="also write points3d.ply: N SfM-like surface points (default 0: none)")
     o.add_argument("--variant", default="auto", help="Mitsuba variant (default auto)")
@@ -101,12 +113,16 @@ def _cmd_make_dataset(args) -> int:
 def _make_object(args) -> int:
     overrides = {k: getattr(args, k) for k in
                  ("mesh", "envmap", "n_train", "n_test", "resolution", "spp", "seed", "up_axis",
-                  "sfm_points")
+                  "sfm_points", "fov_deg", "radius", "half_extent", "roughness")
                  if getattr(args, k) is not None}
     if args.relight is not None:
         overrides["relight_envmaps"] = tuple(args.relight)
     if args.no_texture:
         overrides["texture"] = None
+    if args.train_rings_deg:
+        overrides["train_rings_deg"] = tuple(args.train_rings_deg)
+    if args.base_color is not None:
+        overrides["base_color"] = tuple(args.base_color)
     cfg = ObjectDatasetConfig(out_dir=args.out, variant=set_variant(args.variant), **overrides)
     s = make_object_dataset(cfg, progress=not args.quiet)
     relit = ", ".join(s["relight"]) or "none"

@@ -113,6 +113,7 @@ class ObjectDatasetConfig:
     radius: float | None = None
     radius_margin: float = 1.1
     train_elevation_deg: tuple[float, float] = (0.0, 90.0)
+    train_rings_deg: tuple[float, ...] = ()  # non-empty: train views on these elevation rings
     test_elevations_deg: tuple[float, ...] = (15.0, 35.0, 55.0)
     up_axis: str = "y"
     half_extent: float = 1.0             # largest half side of the normalised bounding box
@@ -146,6 +147,9 @@ class ObjectDatasetConfig:
         if not -90.0 <= lo <= hi <= 90.0:
             raise ValueError("ObjectDatasetConfig.train_elevation_deg must satisfy "
                              f"-90 <= lo <= hi <= 90 (got {self.train_elevation_deg})")
+        if any(not -90.0 <= float(e) <= 90.0 for e in self.train_rings_deg):
+            raise ValueError("ObjectDatasetConfig.train_rings_deg must be elevations in [-90, 90] "
+                             f"(got {self.train_rings_deg})")
         if not self.test_elevations_deg:
             raise ValueError("ObjectDatasetConfig.test_elevations_deg must name >= 1 circle")
         if self.radius is not None and float(self.radius) <= 0:
@@ -276,7 +280,8 @@ def make_object_dataset(cfg: ObjectDatasetConfig, progress: bool = True) -> dict
                       f"({bound_r:.3f}); views may clip the object")
 
     rng = np.random.default_rng(cfg.seed)
-    cams = {"train": train_cameras(cfg.n_train, radius, rng, cfg.train_elevation_deg),
+    cams = {"train": (test_cameras(cfg.n_train, radius, cfg.train_rings_deg) if cfg.train_rings_deg
+                      else train_cameras(cfg.n_train, radius, rng, cfg.train_elevation_deg)),
             "test": test_cameras(cfg.n_test, radius, cfg.test_elevations_deg)}
     out = Path(cfg.out_dir)
     relight_names = [p.stem for p in relight]

@@ -15,7 +15,9 @@ import mitsuba as mi
 from comgs_dr.core.variant import mitsuba_ad_base, variant_class
 from comgs_dr.surfels import composite
 from comgs_dr.surfels import composite as compositing
+from comgs_dr.surfels import raster
 
+METHODS = ("auto", "trace", "raster")
 TARGETS = ("color", "weight", "depth", "depth_unbiased", "normal", "albedo", "roughness", "metallic")
 _CHANNELS = {"weight": ["weight"], "depth": ["depth"], "depth_unbiased": ["depth_unbiased"],
              "normal": ["normal.X", "normal.Y", "normal.Z"],
@@ -63,6 +65,14 @@ class SurfelGBufferBase:
      * - background
        - |float|
        - Grey level added to the colour as T_final · background (Default: 0)
+     * - method
+       - |string|
+       - How camera rays find their hits: ``raster`` bins the surfels' ±3σ quads into
+         16×16 pixel tiles and walks each pixel's tile list front to back
+         (:mod:`comgs_dr.surfels.raster`; pinhole ``perspective`` sensors only),
+         ``trace`` re-traces the proxy quads once per hit (any sensor), ``auto``
+         rasterises for perspective sensors and traces otherwise (Default: auto).
+         Both give the same hit lists up to ties, composited by the same code.
 
     The colour goes to the film's RGB channels (0 when not requested); the other
     targets are AOVs named ``weight``, ``depth``, ``depth_unbiased``,
@@ -88,6 +98,11 @@ class SurfelGBufferBase:
         self.epsilon = float(props.get("epsilon", -1.0))
         self.targets = parse_targets(str(props.get("targets", "all")))
         self.jitter = bool(props.get("jitter", False))
+        self.method = str(props.get("method", "auto"))
+        if self.method not in METHODS:
+            raise ValueError(f"surfel_gbuffer: 'method' must be one of {', '.join(METHODS)}, "
+                             f"got {self.method!r}")
+        self._raster_ctx = None
         self._cache_key, self._primal_cache = None, None
         self.background = float(props.get("background", 0.0))
         if not (self.background == self.background) or self.background < 0:
@@ -122,9 +137,15 @@ class SurfelGBufferBase:
         shapes = composite.surfel_shapes(scene, "surfel_gbuffer")
         ray = mi.Ray3f(dr.detach(ray))
         if mode == dr.ADMode.Primal:
-            eps = self.epsilon if self.epsilon > 0 else composite.auto_epsilon(scene, shapes)
-            hits, out, acc, T = compositing.trace_composite(
-                scene, shapes, ray, self.max_hits, eps, self.targets, self.background, active)
+            ctx = self._raster_ctx
+            if ctx is not None and dr.width(ctx[1].x) == dr.width(ray.d):
+                hits = raster.find_hits(shapes, ctx[0], ray, ctx[1], self.max_hits, active)
+                out, acc, T = compositing.composite_hits(shapes, ray, hits, self.targets,
+                                                         self.background)
+            else:
+                eps = self.epsilon if self.epsilon > 0 else composite.auto_epsilon(scene, shapes)
+                hits, out, acc, T = compositing.trace_composite(
+                    scene, shapes, ray, self.max_hits, eps, self.targets, self.background, active)
             L = out.get("color", mi.Color3f(0.0))
             state = (hits, acc, T)
             self._primal_cache = (self._cache_key, state) if self._cache_key is not None else None
@@ -161,7 +182,20 @@ class SurfelGBufferBase:
                 time=sensor.shutter_open(), sample1=sampler.next_1d() if mi.is_spectral else 0.0,
                 sample2=pos_f / full, sample3=aperture)
         splat = mi.Vector2f(pix) if film.rfilter().is_box_filter() else pos_f
+        self._raster_ctx = (sensor, pix) if self._rasterise(sensor) else None
         return ray, weight, splat
+
+    def _rasterise(self, sensor) -> bool:
+        """Whether camera rays of ``sensor`` find their hits by tile rasterisation."""
+        if self.method == "trace":
+            return False
+        if raster.is_pinhole(sensor):
+            return True
+        if self.method == "raster":
+            raise raster.NotPinhole(f"surfel_gbuffer: method='raster' needs a pinhole "
+                                    f"'perspective' sensor, got {sensor.class_name()}; "
+                                    "use method='trace' or 'auto'")
+        return False
 
     # Mitsuba 3.9.1's RBIntegrator multiplies AOV samples by the (Spectrum) ray
     # weight before ``ImageBlock.put``, which then rejects the list whenever AOVs
@@ -273,7 +307,7 @@ class SurfelGBufferBase:
         return g
 
     def to_string(self):
-        return (f"SurfelGBufferIntegrator[max_hits={self.max_hits}, "
+        return (f"SurfelGBufferIntegrator[max_hits={self.max_hits}, method={self.method}, "
                 f"targets={','.join(self.targets)}]")
 
 

@@ -15,6 +15,8 @@ v = acos(d_z)/π, v = 0 the top row.
 """
 from __future__ import annotations
 
+import warnings
+
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -252,7 +254,9 @@ def load_envmap(path):
     """Read an HDR/EXR environment map as a float32 RGB ``mi.Bitmap``, checking its values.
 
     FileNotFoundError if missing; ValueError if unreadable, not RGB(A), or holding NaN/Inf
-    or negative values (the message names the file and the count).
+    values (the message names the file and the count). Negative values, which lossy EXR
+    compression (DWAA/DWAB, as in Blender's shipped maps) leaves in dark texels, are clamped
+    to 0 with a warning that names their count and the most negative one.
     """
     p = Path(path)
     if not p.is_file():
@@ -268,7 +272,11 @@ def load_envmap(path):
     bad = int(np.count_nonzero(~np.isfinite(arr[..., :3])))
     if bad:
         raise ValueError(f"environment map {p} has {bad} non-finite (NaN/Inf) values")
-    neg = int(np.count_nonzero(arr[..., :3] < 0))
+    bmp = bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
+    rgb = np.array(bmp, copy=False)
+    neg = int(np.count_nonzero(rgb < 0))
     if neg:
-        raise ValueError(f"environment map {p} has {neg} negative values")
-    return bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
+        warnings.warn(f"environment map {p}: {neg} negative values (most negative "
+                      f"{float(rgb.min()):.3g}) clamped to 0", stacklevel=2)
+        bmp = mi.Bitmap(np.maximum(rgb, 0.0).astype(np.float32))
+    return bmp

@@ -217,6 +217,38 @@ def trace_composite(scene, shapes, ray, K: int, eps: float, targets, background=
     return HitBuffer(ids=ids, slots=slots, count=count, K=K), out, acc, T
 
 
+def composite_hits(shapes, ray, hits: HitBuffer, targets, background: float = 0.0):
+    """Primal compositing of a given hit buffer (no AD), e.g. from the rasteriser.
+
+    Returns (outputs {target: value}, acc {base buffer: value}, T_final), as
+    :func:`trace_composite` does for the hits it finds itself.
+    """
+    names = accumulated(targets)
+    R = dr.width(hits.count)
+    with dr.suspend_grad():
+        ray = mi.Ray3f(dr.detach(ray))
+        rid = dr.arange(mi.UInt32, R)
+
+        def cond(k, T, acc):
+            return k < hits.count
+
+        def body(k, T, acc):
+            pos = rid * hits.K + k
+            index = dr.gather(mi.UInt32, hits.ids, pos)
+            slot = dr.gather(mi.UInt32, hits.slots, pos) if len(shapes) > 1 else mi.UInt32(0)
+            smp, vals = surfel_values(shapes, slot, index, ray, k < hits.count, names)
+            w = T * smp.alpha                                       # T_i α_i
+            acc = {n: dr.fma(vals[n], w, acc[n]) for n in names}
+            return k + 1, T * (1.0 - smp.alpha), acc
+
+        _, T, acc = dr.while_loop((mi.UInt32(0), dr.full(mi.Float, 1.0, R),
+                                   {k: _zero(k, R) for k in names}), cond, body,
+                                  label="surfel composite (hits)")
+        dr.eval(T, acc)
+        out = finish(acc, targets, T, background)
+    return out, acc, T
+
+
 def composite_adjoint(mode, shapes, ray, hits: HitBuffer, acc: dict, T_final, targets,
                       grad_out: dict | None = None, background: float = 0.0) -> dict:
     """Reverse (``grad_out`` = adjoints of the outputs) or forward mode over stored hits.

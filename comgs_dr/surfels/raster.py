@@ -1,0 +1,344 @@
+"""Tile rasterisation of pinhole camera rays: the hit-finding step of ``surfel_gbuffer``.
+
+The tracer (:func:`comgs_dr.surfels.composite.trace_composite`) finds the k-th hit of a
+ray with a k-th BVH traversal; for a pinhole camera every ray of a tile of pixels meets
+the same few surfels, so they are found by binning instead (as 2DGS/3DGS rasterise):
+
+1. :func:`bin_surfels` — project each surfel's ±3σ proxy quad (clipped to the near
+   plane) to the film, emit one (tile, depth) entry per overlapped 16×16 tile, sort the
+   entries by tile, then by the view depth of the surfel centre (a stable 16-bit radix
+   sort: ``np.argsort(kind="stable")``; indices need no gradient).
+2. :func:`raster_hits` — per ray, walk its tile's list front to back with the exact
+   ray–surfel intersection of :mod:`comgs_dr.surfels.kernel`, keep the hits with
+   α ≥ 1/255 inside the ±3σ quad (the tracer's proxy), inserted by ray distance t into a
+   K-slot local buffer, and stop once K hits are found or the transmittance Π(1 − α)
+   of the found hits falls below ``T_MIN`` (a product: independent of the order).
+
+Only hit finding changes: the hit buffer feeds the same differentiable compositing
+(:func:`comgs_dr.surfels.composite.composite_hits` and ``composite_adjoint``), so
+values and gradients are those of the tracer for the same hit list. The hit lists equal
+the tracer's except where centre-depth order and ray-distance order disagree at the
+K-th hit or at the transmittance cut (tilted surfels crossing others; see
+``tests/test_raster.py`` for the measured agreement), and at ties at equal depth.
+
+Binning runs in NumPy (O(N) projection, one stable radix sort of the entries); the
+walk is one Dr.Jit kernel. Written by hand because no library rasterises 2D Gaussian
+surfels for Dr.Jit.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from comgs_dr.surfels import kernel as Kn
+from comgs_dr.surfels.composite import INVALID, HitBuffer
+from comgs_dr.surfels.shape import _finite_rest
+
+TILE = 16                  # tile side in pixels
+_MARGIN_PX = 0.05          # bounding boxes grow by this much (float error of the fitted projection)
+_NEAR_FRACTION = 0.999     # quads are clipped at this fraction of the near-clip distance
+
+
+class NotPinhole(ValueError):
+    """The sensor is not a pinhole perspective camera (use ``method='trace'``)."""
+
+
+@dataclasses.dataclass
+class PinholeView:
+    """World → film-pixel projection of a pinhole sensor.
+
+    A camera-space point c = M (x − C) projects to film pixels
+    ``A @ [c.x / c.z, c.y / c.z, 1]`` (full-film coordinates, as ``pos`` of Mitsuba's
+    ``sample_rays``); only points with c.z ≥ ``near`` can be hit.
+    """
+    M: np.ndarray            # [3, 3] world → camera (rows)
+    C: np.ndarray            # [3] camera centre
+    A: np.ndarray            # [2, 3] camera plane → film pixels
+    near: float
+    crop_offset: tuple[int, int]
+    crop_size: tuple[int, int]
+
+    @property
+    def tiles(self) -> tuple[int, int]:
+        return (-(-self.crop_size[0] // TILE), -(-self.crop_size[1] // TILE))
+
+
+def is_pinhole(sensor) -> bool:
+    """True for Mitsuba's ``perspective`` sensor (no aperture sample)."""
+    return sensor.class_name() == "PerspectiveCamera" and not sensor.needs_aperture_sample()
+
+
+def pinhole_view(sensor) -> PinholeView:
+    """The projection of a ``perspective`` sensor, fitted from its own rays.
+
+    Fitting (rather than re-deriving Mitsuba's camera-to-sample matrix) follows the sensor
+    exactly, principal-point offsets and crop windows included; a residual above 1e-3 px
+    on a 5×5 grid of rays means the sensor is no pinhole and raises :class:`NotPinhole`.
+    """
+    if not is_pinhole(sensor):
+        raise NotPinhole(f"surfel_gbuffer: raster needs a 'perspective' sensor without "
+                         f"aperture, got {sensor.class_name()}")
+    film = sensor.film()
+    full = np.array(film.size(), np.float64)
+    to_world = np.array(sensor.world_transform().matrix, np.float64).reshape(4, 4)
+    inv = np.linalg.inv(to_world)
+    M, C = inv[:3, :3], to_world[:3, 3]
+    g = np.linspace(0.0, 1.0, 5)
+    pos = np.stack(np.meshgrid(g * full[0], g * full[1], indexing="xy"), -1).reshape(-1, 2)
+    with dr.suspend_grad():
+        ray, _ = sensor.sample_ray(0.0, 0.0, mi.Point2f(pos[:, 0] / full[0], pos[:, 1] / full[1]),
+                                   mi.Point2f(0.5))
+    d = np.array(ray.d, np.float64).reshape(3, -1).T                      # [25, 3]
+    c = d @ M.T
+    if np.any(c[:, 2] <= 0):
+        raise NotPinhole("surfel_gbuffer: sensor rays do not all look forward")
+    X = np.c_[c[:, 0] / c[:, 2], c[:, 1] / c[:, 2], np.ones(len(c))]     # [25, 3]
+    A, *_ = np.linalg.lstsq(X, pos, rcond=None)
+    if np.abs(X @ A - pos).max() > 1e-3:
+        raise NotPinhole("surfel_gbuffer: sensor rays are not those of a pinhole camera")
+    o = np.array(ray.o, np.float64).reshape(3, -1).T
+    near = float(np.min(((o - C) @ M.T)[:, 2]))
+    return PinholeView(M=M, C=C, A=A.T, near=max(near, 0.0),
+                       crop_offset=tuple(int(v) for v in film.crop_offset()),
+                       crop_size=tuple(int(v) for v in film.crop_size()))
+
+
+@dataclasses.dataclass
+class SurfelGeometry:
+    """Per-surfel frame of every surfel shape, concatenated (Dr.Jit arrays, [N_total])."""
+    p: mi.Point3f
+    t_u: mi.Vector3f
+    t_v: mi.Vector3f
+    n: mi.Vector3f
+    s: mi.Vector2f
+    op: mi.Float
+    keep: np.ndarray                 # [N_total] bool: finite and peak opacity ≥ 1/255
+    slot: mi.UInt32                  # [N_total] which shape
+    local: mi.UInt32                 # [N_total] index within its shape
+    n_shapes: int
+
+
+def surfel_geometry(shapes) -> SurfelGeometry:
+    """Frames, scales and opacities as :func:`~comgs_dr.surfels.composite.eval_surfel`
+    computes them (same kernel functions), for all shapes."""
+    parts = {k: [] for k in ("p", "t_u", "t_v", "n", "s", "op", "keep", "slot", "local")}
+    with dr.suspend_grad():
+        for j, sh in enumerate(shapes):
+            p = sh.params
+            m = dr.width(p.opacity_logit)
+            q = mi.Vector4f(dr.detach(p.quats))
+            t_u, t_v, n = Kn.quat_frame(q)
+            s = Kn.scales(mi.Vector2f(dr.detach(p.log_scales)))
+            op = Kn.opacity(mi.Float(dr.detach(p.opacity_logit)))
+            mean = mi.Point3f(dr.detach(p.means))
+            idx = dr.arange(mi.UInt32, m)
+            ok = (dr.all(dr.isfinite(mean)) & dr.all(dr.isfinite(q)) & dr.isfinite(op)
+                  & dr.all(dr.isfinite(s)) & _finite_rest(p, idx) & (op >= Kn.ALPHA_MIN))
+            for k, v in (("p", mean), ("t_u", t_u), ("t_v", t_v), ("n", n), ("s", s), ("op", op)):
+                parts[k].append(np.array(v, np.float32).reshape(-1, m).T if k != "op"
+                                else np.array(v, np.float32))
+            parts["keep"].append(np.array(ok, bool))
+            parts["slot"].append(np.full(m, j, np.uint32))
+            parts["local"].append(np.arange(m, dtype=np.uint32))
+    cat = {k: np.concatenate(v) for k, v in parts.items()}
+    vec = {"p": mi.Point3f, "t_u": mi.Vector3f, "t_v": mi.Vector3f, "n": mi.Vector3f,
+           "s": mi.Vector2f}
+    return SurfelGeometry(**{k: T(cat[k].T) for k, T in vec.items()}, op=mi.Float(cat["op"]),
+                          keep=cat["keep"], slot=mi.UInt32(cat["slot"]),
+                          local=mi.UInt32(cat["local"]), n_shapes=len(shapes))
+
+
+@dataclasses.dataclass
+class TileLists:
+    """Entries sorted by (tile, centre depth): surfel ids and each tile's [start, end)."""
+    ids: mi.UInt32          # [E] global surfel index
+    keys: mi.Float          # [E] lower bound of the ray distance t of the entry's hits
+    start: mi.UInt32        # [tiles]
+    end: mi.UInt32          # [tiles]
+    entries: int
+
+
+def _quad_film_bounds(geo: SurfelGeometry, view: PinholeView):
+    """Film-pixel bounding boxes [N, 4] (x0, x1, y0, y1) of the ±3σ quads clipped to the
+    near plane, and [N] bool visible (some part in front of it)."""
+    p = np.array(geo.p, np.float64).reshape(3, -1).T
+    tu = np.array(geo.t_u, np.float64).reshape(3, -1).T
+    tv = np.array(geo.t_v, np.float64).reshape(3, -1).T
+    s = np.array(geo.s, np.float64).reshape(2, -1).T * Kn.QUAD_SIGMA
+    eu, ev = tu * s[:, :1], tv * s[:, 1:]
+    corners = np.stack([p - eu - ev, p + eu - ev, p + eu + ev, p - eu + ev], 1)  # [N, 4, 3]
+    c = (corners - view.C) @ view.M.T                                        # camera space
+    zc = view.near * _NEAR_FRACTION
+    a, b = c, np.roll(c, -1, axis=1)                                         # edges a → b
+    za, zb = a[..., 2] - zc, b[..., 2] - zc
+    cross = (za * zb) < 0
+    w = np.where(cross, za / np.where(cross, za - zb, 1.0), 0.0)
+    inter = a + (b - a) * w[..., None]
+    cand = np.concatenate([a, inter], 1)                                     # [N, 8, 3]
+    valid = np.concatenate([za >= 0, cross], 1)
+    z = np.where(valid, np.maximum(cand[..., 2], zc), 1.0)
+    x, y = cand[..., 0] / z, cand[..., 1] / z
+    fx = view.A[0, 0] * x + view.A[0, 1] * y + view.A[0, 2]
+    fy = view.A[1, 0] * x + view.A[1, 1] * y + view.A[1, 2]
+    inf = np.inf
+    box = np.stack([np.where(valid, fx, inf).min(1), np.where(valid, fx, -inf).max(1),
+                    np.where(valid, fy, inf).min(1), np.where(valid, fy, -inf).max(1)], 1)
+    return box, valid.any(1)
+
+
+def bin_surfels(geo: SurfelGeometry, view: PinholeView) -> TileLists:
+    """(tile, depth)-sorted entries of every kept surfel whose quad overlaps a tile.
+
+    The depth key of a surfel is a lower bound on the ray distance t of any of its hits:
+    the smallest camera depth z_lb = z_c − 3(s_u|t_u·f| + s_v|t_v·f|) of its quad
+    (f the viewing axis) minus the near-plane depth, since t = (z − near) / cos θ ≥ z − near
+    for rays that start on the near plane, as Mitsuba's do.
+    """
+    box, vis = _quad_film_bounds(geo, view)
+    ox, oy = view.crop_offset
+    W, H = view.crop_size
+    ntx, nty = view.tiles
+    ok = vis & geo.keep & np.all(np.isfinite(box), 1)
+    px0 = np.floor(box[:, 0] - _MARGIN_PX) - ox
+    px1 = np.floor(box[:, 1] + _MARGIN_PX) - ox
+    py0 = np.floor(box[:, 2] - _MARGIN_PX) - oy
+    py1 = np.floor(box[:, 3] + _MARGIN_PX) - oy
+    ok &= (px1 >= 0) & (px0 <= W - 1) & (py1 >= 0) & (py0 <= H - 1)
+    idx = np.nonzero(ok)[0]
+    tx0 = (np.clip(px0[idx], 0, W - 1) // TILE).astype(np.int64)
+    tx1 = (np.clip(px1[idx], 0, W - 1) // TILE).astype(np.int64)
+    ty0 = (np.clip(py0[idx], 0, H - 1) // TILE).astype(np.int64)
+    ty1 = (np.clip(py1[idx], 0, H - 1) // TILE).astype(np.int64)
+    f = view.M[2] / np.linalg.norm(view.M[2])
+    p = np.array(geo.p, np.float64).reshape(3, -1).T[idx]
+    tu = np.array(geo.t_u, np.float64).reshape(3, -1).T[idx]
+    tv = np.array(geo.t_v, np.float64).reshape(3, -1).T[idx]
+    sc = np.array(geo.s, np.float64).reshape(2, -1).T[idx] * Kn.QUAD_SIGMA
+    z_lb = (p - view.C) @ f - sc[:, 0] * np.abs(tu @ f) - sc[:, 1] * np.abs(tv @ f)
+    key = z_lb - view.near
+    key = key - 1e-5 * np.abs(key) - 1e-7 * view.near                 # round down, safely
+    order = np.argsort(key, kind="stable")                         # front to back
+    idx, key = idx[order], key[order]
+    tx0, tx1, ty0, ty1 = tx0[order], tx1[order], ty0[order], ty1[order]
+    nx, ny = tx1 - tx0 + 1, ty1 - ty0 + 1
+    counts = nx * ny                                               # [n] tiles per surfel
+    total = int(counts.sum())
+    first = np.repeat(np.cumsum(counts) - counts, counts)
+    k = np.arange(total, dtype=np.int64) - first                   # index within its surfel
+    nxr = np.repeat(nx, counts)
+    tiles = (np.repeat(ty0, counts) + k // nxr) * ntx + np.repeat(tx0, counts) + k % nxr
+    n_tiles = ntx * nty
+    sort = np.argsort(tiles.astype(np.uint16 if n_tiles <= 1 << 16 else np.uint32),
+                      kind="stable")                               # radix sort for 16 bit
+    ids = np.repeat(idx, counts)[sort].astype(np.uint32)
+    keys = np.repeat(key, counts)[sort].astype(np.float32)
+    per_tile = np.bincount(tiles, minlength=n_tiles)
+    end = np.cumsum(per_tile)
+    return TileLists(ids=mi.UInt32(ids) if total else dr.zeros(mi.UInt32, 1),
+                     keys=mi.Float(keys) if total else dr.zeros(mi.Float, 1),
+                     start=mi.UInt32((end - per_tile).astype(np.uint32)),
+                     end=mi.UInt32(end.astype(np.uint32)), entries=total)
+
+
+def raster_hits(geo: SurfelGeometry, lists: TileLists, view: PinholeView, ray, pix, K: int,
+                active=True) -> HitBuffer:
+    """Hit buffer (≤ K hits per ray, ascending t) of rays through film pixels ``pix``.
+
+    ``pix``: [R] integer film pixel (crop offset included) of each ray. The buffer holds
+    what the tracer would find: the hits in t order up to the K-th or up to the one that
+    takes Π(1 − α) below ``T_MIN``. Entries come in the order of a lower bound of their
+    t, so the walk stops once that bound passes the cut t_cut (t of the last kept hit
+    when the buffer is complete, else ∞); every new hit before t_cut is inserted by t
+    and the cut is recomputed over the ≤ K sorted hits.
+    """
+    with dr.suspend_grad():
+        ray = mi.Ray3f(dr.detach(ray))
+        R = dr.width(ray.d)
+        ntx = view.tiles[0]
+        tile = ((pix.y - view.crop_offset[1]) // TILE) * ntx + (pix.x - view.crop_offset[0]) // TILE
+        j0 = dr.gather(mi.UInt32, lists.start, tile)
+        j1 = dr.gather(mi.UInt32, lists.end, tile)
+        j1 = dr.select(mi.Bool(active), j1, j0)
+        tb = dr.alloc_local(mi.Float, K, mi.Float(dr.inf))
+        ab = dr.alloc_local(mi.Float, K, mi.Float(0.0))
+        ib = dr.alloc_local(mi.UInt32, K, mi.UInt32(INVALID))
+        qmax = Kn.QUAD_SIGMA
+
+        def cond(j, count, tcut, tb, ab, ib):
+            key = dr.gather(mi.Float, lists.keys, j, j < j1)
+            return (j < j1) & (key <= tcut)
+
+        def body(j, count, tcut, tb, ab, ib):
+            g = dr.gather(mi.UInt32, lists.ids, j)
+            p = dr.gather(mi.Point3f, geo.p, g)
+            t_u = dr.gather(mi.Vector3f, geo.t_u, g)
+            t_v = dr.gather(mi.Vector3f, geo.t_v, g)
+            n = dr.gather(mi.Vector3f, geo.n, g)
+            s = dr.gather(mi.Vector2f, geo.s, g)
+            op = dr.gather(mi.Float, geo.op, g)
+            t, u, v, ok = Kn.ray_surfel(ray.o, ray.d, p, t_u, t_v, n, s)
+            alpha = Kn.surfel_alpha(op, u, v)
+            hit = (ok & (dr.abs(u) <= qmax) & (dr.abs(v) <= qmax) & (t > 0) & (t <= ray.maxt)
+                   & (t < tcut) & (alpha >= Kn.ALPHA_MIN) & dr.isfinite(alpha) & dr.isfinite(t))
+            pos = dr.select(hit, dr.minimum(count, K - 1), 0)
+
+            def c2(pos, tb, ab, ib):                               # insertion by t
+                return (pos > 0) & (tb[dr.maximum(pos, 1) - 1] > t)
+
+            def b2(pos, tb, ab, ib):
+                tb[pos] = tb[pos - 1]
+                ab[pos] = ab[pos - 1]
+                ib[pos] = ib[pos - 1]
+                return pos - 1, tb, ab, ib
+
+            pos, tb, ab, ib = dr.while_loop((pos, tb, ab, ib), c2, b2, label="raster insert")
+            tb.write(t, pos, hit)
+            ab.write(alpha, pos, hit)
+            ib.write(g, pos, hit)
+            count = dr.select(hit, dr.minimum(count + 1, K), count)
+
+            def c3(k, T, L, tb, ab):                               # cut: K hits or T < T_MIN
+                return hit & (k < count) & (L == K + 1)
+
+            def b3(k, T, L, tb, ab):
+                T = T * (1.0 - ab[k])
+                L = dr.select(T < Kn.T_MIN, k + 1, L)
+                return k + 1, T, L, tb, ab
+
+            _, _, L, tb, ab = dr.while_loop((mi.UInt32(0), mi.Float(1.0), mi.UInt32(K + 1), tb, ab),
+                                            c3, b3, label="raster cut")
+            full = hit & ((L <= K) | (count == K))
+            count = dr.select(hit & (L <= K), L, count)
+            tcut = dr.select(full, tb[dr.maximum(count, 1) - 1], tcut)
+            return j + 1, count, tcut, tb, ab, ib
+
+        j, count, tcut, tb, ab, ib = dr.while_loop(
+            (mi.UInt32(j0), dr.zeros(mi.UInt32, R), dr.full(mi.Float, dr.inf, R), tb, ab, ib),
+            cond, body, label="raster walk")
+        base = dr.arange(mi.UInt32, R) * K
+        ids = dr.full(mi.UInt32, INVALID, R * K)
+        slots = dr.zeros(mi.UInt32, R * K)
+
+        def c4(k, ib):
+            return k < count
+
+        def b4(k, ib):                                             # local → global index
+            gi = ib[k]
+            dr.scatter(ids, dr.gather(mi.UInt32, geo.local, gi), base + k)
+            if geo.n_shapes > 1:
+                dr.scatter(slots, dr.gather(mi.UInt32, geo.slot, gi), base + k)
+            return k + 1, ib
+
+        dr.while_loop((mi.UInt32(0), ib), c4, b4, label="raster write")
+        dr.eval(ids, slots, count)
+    return HitBuffer(ids=ids, slots=slots, count=count, K=K)
+
+
+def find_hits(shapes, sensor, ray, pix, K: int, active=True) -> HitBuffer:
+    """Project, bin and walk: the hit buffer of ``sensor``'s rays ``ray`` through ``pix``."""
+    view = pinhole_view(sensor)
+    geo = surfel_geometry(shapes)
+    return raster_hits(geo, bin_surfels(geo, view), view, ray, pix, K, active)
