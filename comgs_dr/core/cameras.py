@@ -53,8 +53,9 @@ def camera_rays(sensor_or_dict, width: int | None = None, height: int | None = N
     Origins are per pixel: Mitsuba's perspective rays start on the near-clip plane,
     o = o_cam + t_near·d (t_near = near_clip / cos), and the G-buffer depth is measured
     from there — pass these origins to ``depth_to_normal``, not the camera centre.
-    Without ``width``/``height`` the film's crop window is used (offset + crop size,
-    normalised by the full film size), as ``mi.render`` does.
+    Without ``width``/``height`` the film's crop window is used: Mitsuba's projective
+    sensors map ``sample2`` ∈ [0, 1]² onto the crop window, so pixel (x, y) of the full
+    film is ``((x + ½ − crop_x) / crop_w, …)``, as ``mi.render`` does.
     """
     sensor = mi.load_dict(sensor_or_dict) if isinstance(sensor_or_dict, dict) else sensor_or_dict
     if not isinstance(sensor, mi.Sensor):
@@ -62,19 +63,19 @@ def camera_rays(sensor_or_dict, width: int | None = None, height: int | None = N
                          f"got {type(sensor_or_dict).__name__}")
     film = sensor.film()
     if width is None and height is None:
-        (w, h), off, full = film.crop_size(), film.crop_offset(), film.size()
+        (w, h), off = film.crop_size(), film.crop_offset()
     elif width is None or height is None:
         raise ValueError("camera_rays: give both width and height, or neither")
     else:
-        w, h, off, full = int(width), int(height), (0, 0), (int(width), int(height))
+        w, h, off = int(width), int(height), (0, 0)
         if w < 1 or h < 1:
             raise ValueError(f"camera_rays: resolution must be positive, got {w}x{h}")
     with dr.suspend_grad():
         idx = dr.arange(mi.UInt32, w * h)
-        pos = mi.Vector2f(mi.Float(idx % w + off[0]), mi.Float(idx // w + off[1])) + 0.5
+        pos = mi.Vector2f(mi.Float(idx % w), mi.Float(idx // w)) + 0.5    # within the crop
         aperture = mi.Vector2f(0.5)
         ray, _ = sensor.sample_ray(time=sensor.shutter_open(), sample1=0.0,
-                                   sample2=pos / mi.ScalarVector2f(full), sample3=aperture)
+                                   sample2=pos / mi.ScalarVector2f(w, h), sample3=aperture)
         d = dr.normalize(mi.Vector3f(ray.d))                               # [H·W]
         o = mi.Vector3f(ray.o)
         dirs = mi.TensorXf(dr.ravel(d), shape=(h, w, 3))

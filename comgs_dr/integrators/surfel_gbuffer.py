@@ -175,12 +175,13 @@ class SurfelGBufferBase:
         pix = mi.Vector2u(idx % size[0], idx // size[0]) + mi.Vector2u(film.crop_offset())
         offset = sampler.next_2d() if (self.jitter or spp > 1) else mi.Vector2f(0.5)
         pos_f = mi.Vector2f(pix) + offset
-        full = mi.ScalarVector2f(film.size())
+        # projective sensors map sample2 ∈ [0, 1]² onto the crop window (as mi.render)
+        crop0, crop = mi.ScalarVector2f(film.crop_offset()), mi.ScalarVector2f(size)
         aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Vector2f(0.5)
         with dr.resume_grad():
             ray, weight = sensor.sample_ray_differential(
                 time=sensor.shutter_open(), sample1=sampler.next_1d() if mi.is_spectral else 0.0,
-                sample2=pos_f / full, sample3=aperture)
+                sample2=(pos_f - crop0) / crop, sample3=aperture)
         splat = mi.Vector2f(pix) if film.rfilter().is_box_filter() else pos_f
         self._raster_ctx = (sensor, pix) if self._rasterise(sensor) else None
         return ray, weight, splat

@@ -9,17 +9,20 @@ the same few surfels, so they are found by binning instead (as 2DGS/3DGS rasteri
    entries by tile, then by the view depth of the surfel centre (a stable 16-bit radix
    sort: ``np.argsort(kind="stable")``; indices need no gradient).
 2. :func:`raster_hits` — per ray, walk its tile's list front to back with the exact
-   ray–surfel intersection of :mod:`comgs_dr.surfels.kernel`, keep the hits with
-   α ≥ 1/255 inside the ±3σ quad (the tracer's proxy), inserted by ray distance t into a
-   K-slot local buffer, and stop once K hits are found or the transmittance Π(1 − α)
-   of the found hits falls below ``T_MIN`` (a product: independent of the order).
+   ray–surfel intersection of :mod:`comgs_dr.surfels.kernel`, keep the hits of the ±3σ
+   proxy quad (shifted along n by the shape's proxy jitter, as the tracer's) with
+   α ≥ 1/255, inserted by the proxy's ray distance t into a K-slot local buffer, and
+   stop once K hits are found or the transmittance Π(1 − α) of the found hits falls
+   below ``T_MIN`` (a product: independent of the order).
 
 Only hit finding changes: the hit buffer feeds the same differentiable compositing
 (:func:`comgs_dr.surfels.composite.composite_hits` and ``composite_adjoint``), so
 values and gradients are those of the tracer for the same hit list. The hit lists equal
-the tracer's except where centre-depth order and ray-distance order disagree at the
-K-th hit or at the transmittance cut (tilted surfels crossing others; see
-``tests/test_raster.py`` for the measured agreement), and at ties at equal depth.
+the tracer's (coplanar surfels, e.g. of ``from_mesh`` faces, in the order of their
+jittered proxies, as the tracer finds them) up to ties: hits at the ±3σ border or at
+α = 1/255 within float rounding, and hits the tracer misses because their proxy lies
+within its origin step (ε or ~4 ulps) of another one; see ``tests/test_raster.py`` for
+the measured agreement.
 
 Binning runs in NumPy (O(N) projection, one stable radix sort of the entries); the
 walk is one Dr.Jit kernel. Written by hand because no library rasterises 2D Gaussian
@@ -89,8 +92,10 @@ def pinhole_view(sensor) -> PinholeView:
     g = np.linspace(0.0, 1.0, 5)
     pos = np.stack(np.meshgrid(g * full[0], g * full[1], indexing="xy"), -1).reshape(-1, 2)
     with dr.suspend_grad():
-        ray, _ = sensor.sample_ray(0.0, 0.0, mi.Point2f(pos[:, 0] / full[0], pos[:, 1] / full[1]),
-                                   mi.Point2f(0.5))
+        off = np.array(film.crop_offset(), np.float64)              # sample2 spans the crop
+        crop = np.array(film.crop_size(), np.float64)
+        smp = (pos - off) / crop
+        ray, _ = sensor.sample_ray(0.0, 0.0, mi.Point2f(smp[:, 0], smp[:, 1]), mi.Point2f(0.5))
     d = np.array(ray.d, np.float64).reshape(3, -1).T                      # [25, 3]
     c = d @ M.T
     if np.any(c[:, 2] <= 0):
@@ -108,8 +113,13 @@ def pinhole_view(sensor) -> PinholeView:
 
 @dataclasses.dataclass
 class SurfelGeometry:
-    """Per-surfel frame of every surfel shape, concatenated (Dr.Jit arrays, [N_total])."""
+    """Per-surfel frame of every surfel shape, concatenated (Dr.Jit arrays, [N_total]).
+
+    ``proxy`` is the centre of the tracer's proxy quad: p shifted along n by the shape's
+    per-surfel proxy jitter (as :func:`comgs_dr.surfels.shape.quad_buffers` does).
+    """
     p: mi.Point3f
+    proxy: mi.Point3f
     t_u: mi.Vector3f
     t_v: mi.Vector3f
     n: mi.Vector3f
@@ -124,7 +134,8 @@ class SurfelGeometry:
 def surfel_geometry(shapes) -> SurfelGeometry:
     """Frames, scales and opacities as :func:`~comgs_dr.surfels.composite.eval_surfel`
     computes them (same kernel functions), for all shapes."""
-    parts = {k: [] for k in ("p", "t_u", "t_v", "n", "s", "op", "keep", "slot", "local")}
+    parts = {k: [] for k in ("p", "proxy", "t_u", "t_v", "n", "s", "op", "keep", "slot",
+                             "local")}
     with dr.suspend_grad():
         for j, sh in enumerate(shapes):
             p = sh.params
@@ -137,15 +148,18 @@ def surfel_geometry(shapes) -> SurfelGeometry:
             idx = dr.arange(mi.UInt32, m)
             ok = (dr.all(dr.isfinite(mean)) & dr.all(dr.isfinite(q)) & dr.isfinite(op)
                   & dr.all(dr.isfinite(s)) & _finite_rest(p, idx) & (op >= Kn.ALPHA_MIN))
-            for k, v in (("p", mean), ("t_u", t_u), ("t_v", t_v), ("n", n), ("s", s), ("op", op)):
+            hashed = mi.Float((idx * 2654435761) >> 8) * (1.0 / (1 << 24))   # as quad_buffers
+            proxy = mean + n * (sh.proxy_jitter * (hashed - 0.5))
+            for k, v in (("p", mean), ("proxy", proxy), ("t_u", t_u), ("t_v", t_v), ("n", n),
+                         ("s", s), ("op", op)):
                 parts[k].append(np.array(v, np.float32).reshape(-1, m).T if k != "op"
                                 else np.array(v, np.float32))
             parts["keep"].append(np.array(ok, bool))
             parts["slot"].append(np.full(m, j, np.uint32))
             parts["local"].append(np.arange(m, dtype=np.uint32))
     cat = {k: np.concatenate(v) for k, v in parts.items()}
-    vec = {"p": mi.Point3f, "t_u": mi.Vector3f, "t_v": mi.Vector3f, "n": mi.Vector3f,
-           "s": mi.Vector2f}
+    vec = {"p": mi.Point3f, "proxy": mi.Point3f, "t_u": mi.Vector3f, "t_v": mi.Vector3f,
+           "n": mi.Vector3f, "s": mi.Vector2f}
     return SurfelGeometry(**{k: T(cat[k].T) for k, T in vec.items()}, op=mi.Float(cat["op"]),
                           keep=cat["keep"], slot=mi.UInt32(cat["slot"]),
                           local=mi.UInt32(cat["local"]), n_shapes=len(shapes))
@@ -162,9 +176,9 @@ class TileLists:
 
 
 def _quad_film_bounds(geo: SurfelGeometry, view: PinholeView):
-    """Film-pixel bounding boxes [N, 4] (x0, x1, y0, y1) of the ±3σ quads clipped to the
-    near plane, and [N] bool visible (some part in front of it)."""
-    p = np.array(geo.p, np.float64).reshape(3, -1).T
+    """Film-pixel bounding boxes [N, 4] (x0, x1, y0, y1) of the ±3σ proxy quads clipped to
+    the near plane, and [N] bool visible (some part in front of it)."""
+    p = np.array(geo.proxy, np.float64).reshape(3, -1).T
     tu = np.array(geo.t_u, np.float64).reshape(3, -1).T
     tv = np.array(geo.t_v, np.float64).reshape(3, -1).T
     s = np.array(geo.s, np.float64).reshape(2, -1).T * Kn.QUAD_SIGMA
@@ -193,7 +207,7 @@ def bin_surfels(geo: SurfelGeometry, view: PinholeView) -> TileLists:
     """(tile, depth)-sorted entries of every kept surfel whose quad overlaps a tile.
 
     The depth key of a surfel is a lower bound on the ray distance t of any of its hits:
-    the smallest camera depth z_lb = z_c − 3(s_u|t_u·f| + s_v|t_v·f|) of its quad
+    the smallest camera depth z_lb = z_c − 3(s_u|t_u·f| + s_v|t_v·f|) of its proxy quad
     (f the viewing axis) minus the near-plane depth, since t = (z − near) / cos θ ≥ z − near
     for rays that start on the near plane, as Mitsuba's do.
     """
@@ -213,7 +227,7 @@ def bin_surfels(geo: SurfelGeometry, view: PinholeView) -> TileLists:
     ty0 = (np.clip(py0[idx], 0, H - 1) // TILE).astype(np.int64)
     ty1 = (np.clip(py1[idx], 0, H - 1) // TILE).astype(np.int64)
     f = view.M[2] / np.linalg.norm(view.M[2])
-    p = np.array(geo.p, np.float64).reshape(3, -1).T[idx]
+    p = np.array(geo.proxy, np.float64).reshape(3, -1).T[idx]
     tu = np.array(geo.t_u, np.float64).reshape(3, -1).T[idx]
     tv = np.array(geo.t_v, np.float64).reshape(3, -1).T[idx]
     sc = np.array(geo.s, np.float64).reshape(2, -1).T[idx] * Kn.QUAD_SIGMA
@@ -249,7 +263,10 @@ def raster_hits(geo: SurfelGeometry, lists: TileLists, view: PinholeView, ray, p
 
     ``pix``: [R] integer film pixel (crop offset included) of each ray. The buffer holds
     what the tracer would find: the hits in t order up to the K-th or up to the one that
-    takes Π(1 − α) below ``T_MIN``. Entries come in the order of a lower bound of their
+    takes Π(1 − α) below ``T_MIN``. As in the tracer, a hit is a hit of the ±3σ proxy
+    quad (shifted along n by the proxy jitter) with α ≥ 1/255 of the analytic surfel, and
+    t is the distance of the proxy, which orders coplanar surfels (``from_mesh`` faces)
+    as the tracer does. Entries come in the order of a lower bound of their
     t, so the walk stops once that bound passes the cut t_cut (t of the last kept hit
     when the buffer is complete, else ∞); every new hit before t_cut is inserted by t
     and the cut is recomputed over the ≤ K sorted hits.
@@ -274,15 +291,18 @@ def raster_hits(geo: SurfelGeometry, lists: TileLists, view: PinholeView, ray, p
         def body(j, count, tcut, tb, ab, ib):
             g = dr.gather(mi.UInt32, lists.ids, j)
             p = dr.gather(mi.Point3f, geo.p, g)
+            c = dr.gather(mi.Point3f, geo.proxy, g)
             t_u = dr.gather(mi.Vector3f, geo.t_u, g)
             t_v = dr.gather(mi.Vector3f, geo.t_v, g)
             n = dr.gather(mi.Vector3f, geo.n, g)
             s = dr.gather(mi.Vector2f, geo.s, g)
             op = dr.gather(mi.Float, geo.op, g)
-            t, u, v, ok = Kn.ray_surfel(ray.o, ray.d, p, t_u, t_v, n, s)
-            alpha = Kn.surfel_alpha(op, u, v)
-            hit = (ok & (dr.abs(u) <= qmax) & (dr.abs(v) <= qmax) & (t > 0) & (t <= ray.maxt)
-                   & (t < tcut) & (alpha >= Kn.ALPHA_MIN) & dr.isfinite(alpha) & dr.isfinite(t))
+            t, u, v, ok = Kn.ray_surfel(ray.o, ray.d, c, t_u, t_v, n, s)       # proxy quad
+            _, ua, va, oka = Kn.ray_surfel(ray.o, ray.d, p, t_u, t_v, n, s)    # the surfel
+            alpha = Kn.surfel_alpha(op, ua, va)
+            hit = (ok & oka & (dr.abs(u) <= qmax) & (dr.abs(v) <= qmax) & (t > 0)
+                   & (t <= ray.maxt) & (t < tcut) & (alpha >= Kn.ALPHA_MIN) & dr.isfinite(alpha)
+                   & dr.isfinite(t))
             pos = dr.select(hit, dr.minimum(count, K - 1), 0)
 
             def c2(pos, tb, ab, ib):                               # insertion by t
