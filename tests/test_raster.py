@@ -483,8 +483,8 @@ def test_surfel_larger_than_screen():
 
 
 def test_empty_tiles():
-    """Surfels only in one corner of a 64² film (4×4 tiles): the other tiles have empty
-    lists and weight 0."""
+    """Surfels only in one corner of a 64² film: the other tiles have empty lists and
+    weight 0."""
     rng = np.random.default_rng(3)
     means = np.c_[rng.uniform(-0.95, -0.75, 12), rng.uniform(-0.1, 0.1, 12),
                   rng.uniform(0.75, 0.95, 12)]
@@ -496,10 +496,14 @@ def test_empty_tiles():
     w = b["weight"][..., 0]
     tiles = w.reshape(4, 16, 4, 16).max((1, 3))
     assert tiles[0, 0] > 0 and np.all(tiles[2:] == 0) and np.all(tiles[:, 2:] == 0), tiles
+    view = raster.pinhole_view(mi.load_dict(sensor))
     lists = raster.bin_surfels(raster.surfel_geometry(composite.surfel_shapes(
-        gbuffer_scene(params, sensor), "test")), raster.pinhole_view(mi.load_dict(sensor)))
-    n_per_tile = (np.array(lists.end) - np.array(lists.start)).reshape(4, 4)
-    assert n_per_tile[0, 0] > 0 and np.count_nonzero(n_per_tile) <= 4, n_per_tile
+        gbuffer_scene(params, sensor), "test")), view)
+    nx, ny = view.tiles
+    n_per_tile = (np.array(lists.end) - np.array(lists.start)).reshape(ny, nx)
+    half = 32 // raster.TILE                   # tiles of the top-left 32×32 pixels
+    assert n_per_tile[:half, :half].sum() > 0 and np.all(n_per_tile[half:] == 0) \
+        and np.all(n_per_tile[:, half:] == 0), n_per_tile
 
 
 def _crop_sensors():
@@ -519,7 +523,7 @@ def test_crop_window_and_non_square_film():
     _, b, h = _agree(params, crop, max_hits=16)
     assert b_full["weight"].shape[:2] == (44, 70) and b["weight"].shape[:2] == (30, 37)
     assert np.mean(b["weight"] > 0) > 0.3 and np.mean(b_full["weight"] > 0) > 0.3
-    assert raster.pinhole_view(h.sensor).tiles == (3, 2)
+    assert raster.pinhole_view(h.sensor).tiles == (-(-37 // raster.TILE), -(-30 // raster.TILE))
 
 
 @pytest.mark.parametrize("method", ["trace", "raster"])
@@ -672,7 +676,8 @@ def test_pinhole_view_round_trip(pp, crop):
     view = raster.pinhole_view(sensor)
     assert view.crop_offset == ((5, 3) if crop else (0, 0))
     assert view.crop_size == ((30, 17) if crop else (40, 24))
-    assert view.tiles == ((2, 2) if crop else (3, 2))
+    w, h = (30, 17) if crop else (40, 24)
+    assert view.tiles == (-(-w // raster.TILE), -(-h // raster.TILE))
     assert abs(view.near - 0.05) < 1e-6
     pos = np.array(pix, np.float64).T + 0.5
     if not crop:

