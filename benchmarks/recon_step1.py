@@ -1,9 +1,11 @@
 """Reconstruction step 1 benchmark: time per iteration by phase, and PSNR against wall time.
 
-Phases: render (trace + forward compositing, fused in one symbolic loop by design),
-loss (L1 + SSIM + d2n + mask), backward (image adjoint + adjoint compositing over the
-cached hit buffer), adam, update (proxy quads + BVH rebuild), density (one
-densify-and-prune, amortised over its interval). Two image sizes x two surfel counts.
+Phases: render (hit finding + forward compositing), loss (L1 + SSIM + d2n + mask), backward
+(image adjoint + adjoint compositing over the cached hit buffer), adam, update (parameters
+into the scene), density (one densify-and-prune, amortised over its interval). Two image
+sizes x two surfel counts x the two hit-finding methods of ``surfel_gbuffer``, side by side
+in one process: ``trace`` (before: Embree, with the proxy/BVH rebuild that every traced
+step needs, now inside "render") and ``raster`` (tile rasterisation; no BVH).
 
     python benchmarks/recon_step1.py [--data DIR] [--quick]
     python benchmarks/recon_step1.py --run RUN_DIR     # PSNR-vs-time table of a finished run
@@ -45,7 +47,7 @@ def make_data(res: int, root: Path) -> Path:
     return out
 
 
-def bench(data_dir: Path, n_surfels: int, iters: int) -> dict:
+def bench(data_dir: Path, n_surfels: int, iters: int, method: str = "raster") -> dict:
     import drjit as dr
     import mitsuba as mi
 
@@ -56,6 +58,7 @@ def bench(data_dir: Path, n_surfels: int, iters: int) -> dict:
                          sh_increase_every=0, sh_degree=0)
     with tempfile.TemporaryDirectory() as tmp:
         tr = Trainer(data, tmp, cfg, progress=False)
+        tr.integ.method = method
         T = {k: [] for k in ("render", "loss", "backward", "adam", "update", "density")}
 
         def tick(key, t0):
@@ -85,6 +88,7 @@ def main():
     ap.add_argument("--sizes", type=int, nargs="+", default=[64, 128])
     ap.add_argument("--surfels", type=int, nargs="+", default=[10_000, 40_000])
     ap.add_argument("--iters", type=int, default=10)
+    ap.add_argument("--methods", nargs="+", default=["trace", "raster"])
     ap.add_argument("--quick", action="store_true", help="64 px, 10k surfels, 5 iterations")
     ap.add_argument("--run", type=Path, help="print the PSNR-vs-time table of a run and exit")
     a = ap.parse_args()
@@ -101,14 +105,18 @@ def main():
     print(f"# machine: {platform.machine()}, {os.cpu_count()} cores | mitsuba {mitsuba.__version__}, "
           f"drjit {drjit.__version__}, llvm_ad_rgb | median ms per iteration over {a.iters}")
     cols = ("render", "loss", "backward", "adam", "update", "density")
-    print(f"{'px':>4} {'surfels':>8} " + " ".join(f"{c:>8}" for c in cols) + f" {'total':>8} {'it/s':>6}")
+    print(f"{'px':>4} {'surfels':>8} {'method':>7} " + " ".join(f"{c:>8}" for c in cols)
+          + f" {'total':>8} {'it/s':>6} {'speed-up':>8}")
     for res in a.sizes:
         data = a.data or make_data(res, root)
         for n in a.surfels:
-            r = bench(data, n, a.iters)
-            tot = sum(r[c] for c in cols)
-            print(f"{res:>4} {r['n']:>8} " + " ".join(f"{1000 * r[c]:>8.1f}" for c in cols)
-                  + f" {1000 * tot:>8.1f} {1 / tot:>6.2f}")
+            first = None
+            for m in a.methods:
+                r = bench(data, n, a.iters, m)
+                tot = sum(r[c] for c in cols)
+                first = first or tot
+                print(f"{res:>4} {r['n']:>8} {m:>7} " + " ".join(f"{1000 * r[c]:>8.1f}" for c in cols)
+                      + f" {1000 * tot:>8.1f} {1 / tot:>6.2f} {first / tot:>7.2f}x")
 
 
 if __name__ == "__main__":

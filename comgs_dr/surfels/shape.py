@@ -98,6 +98,7 @@ class SurfelShapeBase:
         for f in field_names():
             setattr(self.params, f, getattr(params, f))
         self._rebuild()
+        self.version += 1
 
     def surfel_count(self) -> int:
         return self.params.count
@@ -168,7 +169,8 @@ class SurfelShapeBase:
                 self._building = False
         self._n = n
         self.proxies_stale = False
-        self.version = getattr(self, "version", 0) + 1   # bumped on every rebuild
+        if not hasattr(self, "version"):
+            self.version = 0          # bumped by parameter changes (not by lazy rebuilds)
 
     def to_string(self):
         return f"SurfelShape[id={self.id()}, surfels={self.params.count}, sh_degree={self.params.sh_degree}]"

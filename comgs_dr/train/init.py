@@ -157,3 +157,125 @@ def random_sphere_points(n: int, center, radius: float, rng: np.random.Generator
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return (np.asarray(center) + d * radius * rng.uniform(0, 1, (n, 1)) ** (1 / 3)).astype(np.float32)
+
+
+def normal_quaternions(normals) -> np.ndarray:
+    """[N, 4] w-first quaternions of surfels whose normal (local +Z) is ``normals`` [N, 3]
+    (need not be unit length); the tangent axes are arbitrary but deterministic."""
+    n = np.asarray(normals, np.float64)
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    t = np.cross(n, np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    return frame_to_quat(np.stack([t, np.cross(n, t), n], -1)).astype(np.float32)
+
+
+def near_far_points(views, near_far, n: int, rng: np.random.Generator, candidates: int = 1,
+                    neighbours: int = 4):
+    """Random points in the union of the training frusta between each view's near/far
+    bounds: the initialisation of forward-facing captures (LLFF) without SfM points.
+
+    Each point comes from one view (round robin over ``views``): a uniformly random pixel,
+    back-projected to a depth drawn uniformly in inverse depth (disparity) between that
+    view's ``near_far[i] = (near, far)`` z-depths, as NDC/forward-facing methods sample, so
+    near content gets as many points per depth layer as the background. Its colour is that
+    pixel's (the view's stored image value) and its normal points back along the view ray
+    (a forward-facing scene is seen from one side).
+
+    ``candidates`` > 1: a crude plane sweep instead of one random depth. The point gets
+    the most photo-consistent of ``candidates`` stratified disparities: the 3x3 patch
+    around its pixel against the patches its candidate positions project to in the
+    ``neighbours`` nearest training views (mean absolute colour difference, averaged over
+    the better half of the neighbours that see it, so one occluding view does not veto
+    the right depth). Where no neighbour sees any candidate the depth stays random.
+
+    Returns (points [n, 3] float32, colours [n, 3] float32, normals [n, 3] float32 unit).
+    """
+    nf = np.asarray(near_far, np.float64).reshape(-1, 2)
+    if len(nf) != len(views):
+        raise ValueError(f"near_far_points: {len(nf)} near/far pairs for {len(views)} views")
+    if not (np.isfinite(nf).all() and (nf[:, 0] > 0).all() and (nf[:, 1] > nf[:, 0]).all()):
+        raise ValueError("near_far_points: need 0 < near < far (finite) for every view")
+    if n < 4:
+        raise ValueError(f"near_far_points: need n >= 4 points, got {n}")
+    k = max(int(candidates), 1)
+    centers = np.array([np.asarray(v.camera.to_world, np.float64)[:3, 3] for v in views])
+    owner = np.arange(n) % len(views)
+    pts = np.empty((n, 3))
+    cols = np.empty((n, 3), np.float32)
+    nrm = np.empty((n, 3))
+    for j, v in enumerate(views):
+        idx = np.flatnonzero(owner == j)
+        if not len(idx):
+            continue
+        m_ = len(idx)
+        cam = v.camera
+        w, h = cam.width, cam.height
+        f = 0.5 * w / np.tan(np.radians(cam.fov_x_deg) / 2)
+        cx = w * (0.5 - getattr(cam, "principal_point_offset_x", 0.0))   # as types.project
+        cy = h * (0.5 - getattr(cam, "principal_point_offset_y", 0.0))
+        ix, iy = rng.integers(0, w, m_), rng.integers(0, h, m_)
+        # random position in the pixel; its centre when matching (the reference patch's)
+        jit = rng.uniform(0, 1, (m_, 2)) if k == 1 else np.full((m_, 2), 0.5)
+        x, y = ix + jit[:, 0], iy + jit[:, 1]
+        near, far = nf[j]
+        # k stratified disparities per point (k = 1: uniform in [1/far, 1/near])
+        s = 1.0 / far + (np.arange(k) + rng.uniform(0, 1, (m_, k))) / k * (1.0 / near - 1.0 / far)
+        z = 1.0 / s                                                        # [m, k]
+        pc = np.stack([(cx - x) / f, (cy - y) / f, np.ones(m_)], 1)       # Mitsuba camera, z = 1
+        m = np.asarray(cam.to_world, np.float64)
+        d = pc @ m[:3, :3].T                                               # world ray (|d_z| = 1)
+        if k > 1 and len(views) > 1:
+            nb = np.argsort(np.linalg.norm(centers - centers[j], axis=1))[1:1 + int(neighbours)]
+            cand = m[:3, 3] + d[:, None, :] * z[..., None]                # [m, k, 3]
+            others = [views[i] for i in nb]
+            best = np.concatenate([                                        # bounded memory
+                _photo_consistent(v.image, ix[c:c + 2048], iy[c:c + 2048], cand[c:c + 2048],
+                                  others, rng) for c in range(0, m_, 2048)])
+            z = z[np.arange(m_), best]
+        else:
+            z = z[:, 0]
+        pts[idx] = m[:3, 3] + d * z[:, None]
+        nrm[idx] = -d / np.linalg.norm(d, axis=1, keepdims=True)
+        cols[idx] = v.image[iy, ix, :3]
+    return pts.astype(np.float32), cols, nrm.astype(np.float32)
+
+
+def _photo_consistent(image, ix, iy, cand, others, rng) -> np.ndarray:
+    """Index [m] of the candidate in ``cand`` [m, k, 3] whose 3x3 patches in ``others``
+    best match the reference patch around pixel (ix, iy) of ``image`` (see near_far_points).
+    Neighbour patches are sampled bilinearly around the candidate's sub-pixel projection."""
+    m_, k = cand.shape[:2]
+    off = np.array([(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], np.float64)  # [9, 2]
+    h, w = image.shape[:2]
+    ref = image[np.clip(iy[:, None] + off[:, 0].astype(int), 0, h - 1),
+                np.clip(ix[:, None] + off[:, 1].astype(int), 0, w - 1), :3]         # [m, 9, 3]
+    costs = np.full((len(others), m_, k), np.inf)
+    for o, v in enumerate(others):
+        px, py, ok = project(v.camera, cand.reshape(-1, 3))
+        patch = _bilinear(v.image, px.reshape(m_, k, 1) + off[:, 1], py.reshape(m_, k, 1) + off[:, 0])
+        c = np.abs(patch - ref[:, None]).mean((2, 3))                               # [m, k]
+        costs[o] = np.where(ok.reshape(m_, k), c, np.inf)
+    costs.sort(axis=0)                                                      # best neighbours first
+    half = max(1, (len(others) + 1) // 2)
+    seen = np.isfinite(costs[:half]).sum(0)                                 # [m, k]
+    total = np.where(seen > 0, np.where(np.isfinite(costs[:half]), costs[:half], 0).sum(0)
+                     / np.maximum(seen, 1), np.inf)
+    best = np.argmin(total, axis=1)
+    none = ~np.isfinite(total).any(1)
+    best[none] = rng.integers(0, k, int(none.sum()))
+    return best
+
+
+def _bilinear(image, x, y) -> np.ndarray:
+    """``image`` [H, W, C] at continuous pixel coordinates (pixel centres at i + 0.5),
+    edge-clamped; x, y of any equal shape S -> [*S, 3]."""
+    h, w = image.shape[:2]
+    x = np.clip(x - 0.5, 0, w - 1)
+    y = np.clip(y - 0.5, 0, h - 1)
+    x0 = np.minimum(x.astype(int), w - 2) if w > 1 else np.zeros_like(x, int)
+    y0 = np.minimum(y.astype(int), h - 2) if h > 1 else np.zeros_like(y, int)
+    fx, fy = (x - x0)[..., None], (y - y0)[..., None]
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    im = image[..., :3]
+    return (im[y0, x0] * (1 - fx) + im[y0, x1] * fx) * (1 - fy) + \
+        (im[y1, x0] * (1 - fx) + im[y1, x1] * fx) * fy

@@ -4,7 +4,10 @@
 A trainer provides ``iteration``, ``elapsed`` (training seconds so far, restored on resume),
 ``log`` (list of records), ``step() -> stats`` (with ``loss`` and ``psnr_train``),
 ``evaluate(max_views) -> {'psnr_test', ...}``, ``checkpoint()`` and optionally
-``log_fields() -> dict`` (extra per-record values, e.g. the surfel count). The config gives
+``log_fields() -> dict`` (extra per-record values, e.g. the surfel count) and, to keep the
+best state, ``snapshot() -> state`` / ``restore(state)``: then every evaluation that returns
+``psnr_select`` (a PSNR on *training* views, so the test views never choose the state) and
+beats the best so far is snapshotted (:class:`BestState`). The config gives
 ``iterations``, ``log_every``, ``eval_every``, ``eval_views``, ``checkpoint_every`` and
 ``time_limit_s``. Every record is ``{"iteration", "time_s", **stats[, psnr_test]}``; evaluation
 time does not count as training time.
@@ -13,6 +16,7 @@ from __future__ import annotations
 
 import json
 import time
+import warnings
 from pathlib import Path
 
 from tqdm.auto import tqdm
@@ -28,7 +32,33 @@ def write_log(out_dir: Path, log: list, summary: dict | None = None, indent: int
                       json.dumps({"summary": summary, "log": log}, indent=indent))
 
 
-def run_loop(trainer, cfg, desc: str, progress: bool = True, log_dir: Path | None = None) -> bool:
+class BestState:
+    """The best evaluated state of a run (by ``psnr_select``) and the divergence check."""
+
+    def __init__(self, tolerance_db: float = 0.5):
+        self.psnr, self.iteration, self.state, self.tolerance_db = None, None, None, tolerance_db
+
+    def offer(self, trainer, psnr: float, iteration: int) -> None:
+        if psnr == psnr and (self.psnr is None or psnr > self.psnr):
+            self.psnr, self.iteration, self.state = psnr, iteration, trainer.snapshot()
+
+    def settle(self, trainer, final_psnr: float, iteration: int, desc: str) -> dict | None:
+        """Restore the best state when the final one is more than ``tolerance_db`` worse
+        (or NaN); returns a record of the divergence (logged and warned), else None."""
+        if self.state is None or (final_psnr == final_psnr
+                                  and final_psnr >= self.psnr - self.tolerance_db):
+            return None
+        trainer.restore(self.state)
+        note = {"best_psnr_select": round(self.psnr, 3), "best_iteration": self.iteration,
+                "final_psnr_select": round(final_psnr, 3), "final_iteration": iteration}
+        warnings.warn(f"{desc}: training-view PSNR fell from {self.psnr:.2f} dB (iteration "
+                      f"{self.iteration}) to {final_psnr:.2f} dB (iteration {iteration}); the "
+                      "state of iteration {0} is kept".format(self.iteration), stacklevel=2)
+        return note
+
+
+def run_loop(trainer, cfg, desc: str, progress: bool = True, log_dir: Path | None = None,
+             best: BestState | None = None) -> bool:
     """Run ``trainer`` up to ``cfg.iterations`` (from wherever it resumed). With ``log_dir``
     the log is also written at every checkpoint. Returns True if the time limit stopped it."""
     bar = tqdm(total=cfg.iterations, initial=trainer.iteration, desc=desc, unit="it",
@@ -46,6 +76,8 @@ def run_loop(trainer, cfg, desc: str, progress: bool = True, log_dir: Path | Non
             if evaluate:
                 t_eval = time.perf_counter()
                 rec.update(trainer.evaluate(cfg.eval_views))
+                if best is not None and "psnr_select" in rec:
+                    best.offer(trainer, rec["psnr_select"], it)
                 t0 += time.perf_counter() - t_eval        # evaluation is not training time
             trainer.log.append(rec)
             bar.set_postfix(loss=f"{stats['loss']:.4f}",

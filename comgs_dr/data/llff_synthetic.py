@@ -1,0 +1,250 @@
+"""A synthetic forward-facing LLFF capture: ``poses_bounds.npy`` + ``images/`` (+ ``images_<k>/``).
+
+The test case of step 1 on real forward-facing captures without a point cloud. A small
+scene with a depth range, rendered with Mitsuba's ``path`` integrator (diffuse,
+procedurally textured surfaces; a constant sky and a sun with shadows):
+
+* a textured backdrop wall across the whole field of view at depth ~9,
+* a textured floor from depth ~1.5 to the wall,
+* a sphere (depth ~3.3), a rotated box (~4.9), a tilted card (~2.4) and a pillar (~6.3).
+
+World Z-up; the cameras sit on a jittered ``rows`` x ``cols`` grid in the X–Z plane around
+the origin (baseline ~0.9 x 0.5, a hand-held LLFF capture), all looking along +Y at a
+common focus point at depth 6, with a small random roll/pan jitter. The folder is what
+LLFF's ``imgs2poses.py`` writes, without any points::
+
+    poses_bounds.npy   [N, 17]: [R | t | hwf] (3x5, row-major; R's columns = camera
+                       [down, right, back] in world space, t = centre, hwf of images/),
+                       then (near, far) = the 0.1 / 99.9 percentiles of the view's z-depths
+                       (LLFF takes them from the COLMAP points' depths; here every pixel's)
+    images/            image000.png ... (8-bit sRGB, ``width`` x ``height``)
+    images_<k>/        the same area-downscaled by k (k in ``downscales``), as LLFF ships
+    meta.json          generator settings, Mitsuba ``to_world`` per image, test split
+
+``comgs reconstruct DIR --scene -r 8`` reads ``images/`` (the loader prefers it) and
+area-averages 8x8 blocks, i.e. the same pixels as ``images_8/``. With the LLFF hold-out
+(every 8th image by name is a test view) 20 images give 17 train + 3 test views.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+
+from comgs_dr.core.cameras import camera_rays
+from comgs_dr.core.colorspace import srgb_encode
+from comgs_dr.data.images import downscale, write_png8
+from comgs_dr.data.synthetic_io import activate_variant
+from comgs_dr.data.types import MITSUBA_FROM_LLFF, Camera
+
+GENERATOR_VERSION = "comgs_dr.data.llff_synthetic/1"
+
+
+@dataclass
+class LLFFDatasetConfig:
+    """Settings of :func:`make_llff_dataset` (defaults: the issue's capture at ``-r 8``)."""
+    out_dir: str | Path
+    rows: int = 4
+    cols: int = 5                         # rows x cols views (LLFF hold-out: every 8th is test)
+    width: int = 800                      # images/ size; images_8/ is 100 x 75
+    height: int = 600
+    fov_x_deg: float = 60.0
+    downscales: tuple[int, ...] = (8,)    # images_<k>/ folders written beside images/
+    spp: int = 16                         # per full-resolution pixel (x k^2 after downscaling)
+    max_depth: int = 4
+    baseline: tuple[float, float] = (0.9, 0.5)   # grid extent in X (right) and Z (up)
+    jitter: float = 0.04                  # position jitter (world units) and ...
+    jitter_deg: float = 1.5               # ... rotation jitter (degrees) per view
+    seed: int = 0
+    variant: str | None = None            # None: keep the active JIT AD variant
+
+
+# ----------------------------------------------------------------------------- textures
+
+def _value_noise(h: int, w: int, rng: np.random.Generator, octaves: int = 5,
+                 base: int = 4) -> np.ndarray:
+    """Fractal value noise [h, w] in [0, 1] (bilinear lattice noise, halving amplitude)."""
+    out = np.zeros((h, w))
+    amp, total = 1.0, 0.0
+    for o in range(octaves):
+        n = base * 2 ** o
+        g = rng.uniform(0, 1, (n + 1, n + 1))
+        y = np.linspace(0, n, h, endpoint=False)
+        x = np.linspace(0, n, w, endpoint=False)
+        y0, x0 = y.astype(int), x.astype(int)
+        fy, fx = (y - y0)[:, None], (x - x0)[None, :]
+        fy, fx = fy * fy * (3 - 2 * fy), fx * fx * (3 - 2 * fx)          # smoothstep
+        a = g[y0][:, x0] * (1 - fx) + g[y0][:, x0 + 1] * fx
+        b = g[y0 + 1][:, x0] * (1 - fx) + g[y0 + 1][:, x0 + 1] * fx
+        out += amp * (a * (1 - fy) + b * fy)
+        total += amp
+        amp *= 0.5
+    out /= total
+    return (out - out.min()) / max(out.max() - out.min(), 1e-9)
+
+
+def _palette(t: np.ndarray, colors) -> np.ndarray:
+    """Map t [h, w] in [0, 1] through a piecewise-linear colour ramp -> [h, w, 3]."""
+    c = np.asarray(colors, np.float64)
+    x = np.linspace(0, 1, len(c))
+    return np.stack([np.interp(t, x, c[:, i]) for i in range(3)], -1)
+
+
+def procedural_textures(rng: np.random.Generator, size: int = 256) -> dict[str, np.ndarray]:
+    """Linear-RGB albedo textures [size, size, 3] in (0, 0.9] for the scene's surfaces."""
+    yy, xx = (np.mgrid[0:size, 0:size] + 0.5) / size
+    n = lambda **kw: _value_noise(size, size, rng, **kw)
+    tex = {}
+    # backdrop: a mottled wall with coloured blobs and a few horizontal bands
+    t = n(octaves=6, base=3)
+    wall = _palette(t, [(0.08, 0.12, 0.25), (0.25, 0.35, 0.55), (0.65, 0.55, 0.35), (0.85, 0.75, 0.55)])
+    bands = (np.sin(2 * np.pi * 3.0 * yy + 4 * n(octaves=2, base=2)) > 0.85)[..., None]
+    tex["wall"] = np.where(bands, wall * 0.4 + np.array([0.5, 0.1, 0.08]) * 0.6, wall)
+    # floor: wood-like planks (stripes along the depth axis with grain noise)
+    grain = n(octaves=5, base=4)
+    plank = np.floor(xx * 8)
+    shade = 0.75 + 0.25 * np.sin(plank * 2.3) ** 2
+    rings = 0.5 + 0.5 * np.sin(2 * np.pi * (yy * 6 + 3 * grain + plank * 0.37))
+    tex["floor"] = _palette(rings, [(0.25, 0.12, 0.05), (0.55, 0.32, 0.14), (0.7, 0.48, 0.25)]) \
+        * shade[..., None] * (np.abs(xx * 8 - np.round(xx * 8)) > 0.03)[..., None]
+    # sphere: coloured latitude stripes warped by noise
+    s = 0.5 + 0.5 * np.sin(2 * np.pi * (6 * yy + 1.5 * n(octaves=3, base=3)))
+    tex["sphere"] = _palette(s, [(0.7, 0.1, 0.08), (0.85, 0.8, 0.2), (0.1, 0.5, 0.2)])
+    # box: a checker with noisy colours
+    chk = ((np.floor(xx * 6) + np.floor(yy * 6)) % 2)[..., None]
+    tex["box"] = chk * _palette(n(octaves=3), [(0.1, 0.2, 0.6), (0.2, 0.6, 0.8)]) + \
+        (1 - chk) * _palette(n(octaves=3), [(0.85, 0.85, 0.8), (0.6, 0.6, 0.55)])
+    # card: concentric rings + dots (fine detail close to the cameras)
+    r = np.hypot(xx - 0.5, yy - 0.5)
+    dots = (((xx * 10) % 1 - 0.5) ** 2 + ((yy * 10) % 1 - 0.5) ** 2 < 0.06)[..., None]
+    ring = _palette(0.5 + 0.5 * np.cos(2 * np.pi * 5 * r), [(0.9, 0.45, 0.1), (0.95, 0.9, 0.8)])
+    tex["card"] = np.where(dots, np.array([0.1, 0.1, 0.12]), ring)
+    # pillar: vertical stripes
+    tex["pillar"] = _palette(0.5 + 0.5 * np.sin(2 * np.pi * 8 * xx + 2 * n(octaves=2)),
+                             [(0.3, 0.6, 0.3), (0.85, 0.85, 0.6)])
+    return {k: np.clip(v, 0.02, 0.9).astype(np.float32) for k, v in tex.items()}
+
+
+# ----------------------------------------------------------------------------- scene
+
+def _diffuse(img: np.ndarray) -> dict:
+    return {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(img),
+                                                "raw": True, "filter_type": "bilinear"}}
+
+
+def scene_dict(textures: dict[str, np.ndarray]) -> dict:
+    """Mitsuba scene dict (no sensor): the forward-facing test scene (see the module doc)."""
+    T = mi.ScalarTransform4f
+    return {
+        "type": "scene",
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.55, 0.6, 0.7]}},
+        "sun": {"type": "directional", "direction": [0.45, 0.6, -0.65],
+                "irradiance": {"type": "rgb", "value": [2.6, 2.4, 2.1]}},
+        # rectangle: [-1, 1]^2 in local XY, normal +Z; rotate +90 deg about X -> normal -Y
+        "wall": {"type": "rectangle", "bsdf": _diffuse(textures["wall"]),
+                 "to_world": T().translate([0, 9.0, 1.0]) @ T().rotate([1, 0, 0], 90) @ T().scale([9.0, 6.0, 1.0])},
+        "floor": {"type": "rectangle", "bsdf": _diffuse(textures["floor"]),
+                  "to_world": T().translate([0, 5.0, -1.4]) @ T().scale([9.0, 4.0, 1.0])},
+        "sphere": {"type": "sphere", "center": [-1.0, 3.3, -0.55], "radius": 0.75,
+                   "bsdf": _diffuse(textures["sphere"])},
+        "box": {"type": "cube", "bsdf": _diffuse(textures["box"]),
+                "to_world": T().translate([1.4, 4.9, -0.75]) @ T().rotate([0, 0, 1], 35)
+                @ T().scale([0.65, 0.65, 0.65])},
+        "card": {"type": "rectangle", "bsdf": _diffuse(textures["card"]),
+                 "to_world": T().translate([0.55, 2.4, 0.55]) @ T().rotate([0, 0, 1], -25)
+                 @ T().rotate([1, 0, 0], 80) @ T().scale([0.45, 0.45, 1.0])},
+        "pillar": {"type": "cylinder", "p0": [-2.4, 6.3, -1.4], "p1": [-2.4, 6.3, 2.2], "radius": 0.35,
+                   "bsdf": _diffuse(textures["pillar"])},
+    }
+
+
+def grid_cameras(cfg: LLFFDatasetConfig, rng: np.random.Generator) -> list[np.ndarray]:
+    """Mitsuba ``to_world`` [4, 4] per view: jittered grid in X–Z, looking at (0, 6, 0)."""
+    bx, bz = cfg.baseline
+    xs = np.linspace(-bx / 2, bx / 2, cfg.cols) if cfg.cols > 1 else np.zeros(1)
+    zs = np.linspace(bz / 2, -bz / 2, cfg.rows) if cfg.rows > 1 else np.zeros(1)
+    out = []
+    for z in zs:
+        for x in xs:
+            o = np.array([x, 0.0, z]) + rng.normal(0, cfg.jitter, 3) * [1, 0.5, 1]
+            target = np.array([0.0, 6.0, 0.0]) + rng.normal(0, 1, 3) * 6.0 * np.radians(cfg.jitter_deg)
+            m = np.array(mi.ScalarTransform4f().look_at(origin=o.tolist(), target=target.tolist(),
+                                                        up=[0, 0, 1]).matrix, float)
+            roll = np.radians(rng.normal(0, cfg.jitter_deg))
+            c, s = np.cos(roll), np.sin(roll)
+            m[:3, :3] = m[:3, :3] @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])  # about forward
+            out.append(m)
+    return out
+
+
+def llff_row(to_world: np.ndarray, width: int, height: int, focal: float, near: float,
+             far: float) -> np.ndarray:
+    """One ``poses_bounds.npy`` row [17] from a Mitsuba ``to_world`` (inverse of the loader:
+    ``[R | t] = to_world @ inv(MITSUBA_FROM_LLFF)``, then hwf, near, far)."""
+    c2w = np.asarray(to_world, np.float64) @ np.linalg.inv(MITSUBA_FROM_LLFF)
+    m = np.concatenate([c2w[:3, :4], np.array([[height], [width], [focal]], np.float64)], 1)
+    return np.concatenate([m.ravel(), [near, far]])
+
+
+def z_depths(scene, cam: Camera) -> np.ndarray:
+    """Depth along the camera's forward axis [H, W] of the first hit per pixel centre
+    (inf where a pixel sees nothing)."""
+    d, o = camera_rays(cam.sensor_dict())
+    d = np.asarray(d, np.float64).reshape(-1, 3)
+    o = np.asarray(o, np.float64).reshape(-1, 3)
+    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(o.T.astype(np.float32)),
+                                      mi.Vector3f(d.T.astype(np.float32))))
+    t = np.where(np.asarray(si.is_valid()), np.asarray(si.t, np.float64), np.inf)
+    p = o + d * t[:, None]
+    z = (p - cam.center) @ cam.to_world[:3, 2]
+    return np.where(np.isfinite(t), z, np.inf).reshape(cam.height, cam.width)
+
+
+def make_llff_dataset(cfg: LLFFDatasetConfig, progress: bool = False) -> dict:
+    """Render the forward-facing capture into ``cfg.out_dir`` (see the module docstring).
+
+    Returns the ``meta.json`` contents (settings, per-image near/far, timings).
+    """
+    activate_variant(cfg.variant)
+    t0 = time.perf_counter()
+    out = Path(cfg.out_dir)
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    for k in cfg.downscales:
+        (out / f"images_{k}").mkdir(exist_ok=True)
+    rng = np.random.default_rng(cfg.seed)
+    scene = mi.load_dict(scene_dict(procedural_textures(rng)))
+    integrator = mi.load_dict({"type": "path", "max_depth": int(cfg.max_depth), "hide_emitters": False})
+    focal = 0.5 * cfg.width / np.tan(np.radians(cfg.fov_x_deg) / 2)
+    rows, names = [], []
+    poses = grid_cameras(cfg, rng)
+    for i, m in enumerate(poses):
+        cam = Camera(m, cfg.width, cfg.height, cfg.fov_x_deg)
+        z = z_depths(scene, cam)
+        zf = z[np.isfinite(z)]
+        if zf.size == 0:
+            raise RuntimeError(f"view {i} sees nothing of the scene")
+        near, far = np.percentile(zf, 0.1), np.percentile(zf, 99.9)
+        img = mi.render(scene, sensor=mi.load_dict(cam.sensor_dict(spp=cfg.spp)),
+                        integrator=integrator, spp=cfg.spp, seed=cfg.seed * 1000 + i)
+        srgb = np.clip(srgb_encode(np.clip(np.asarray(img, np.float64)[..., :3], 0, None)), 0, 1)
+        name = f"image{i:03d}.png"
+        write_png8(out / "images" / name, srgb)
+        for k in cfg.downscales:
+            write_png8(out / f"images_{k}" / name, downscale(srgb.astype(np.float32), k))
+        rows.append(llff_row(m, cfg.width, cfg.height, focal, near, far))
+        names.append(name)
+        if progress:
+            print(f"  view {i + 1}/{len(poses)}: near {near:.3f}, far {far:.3f}", flush=True)
+    np.save(out / "poses_bounds.npy", np.asarray(rows, np.float64))
+    meta = {"generator": GENERATOR_VERSION,
+            "config": {**asdict(cfg), "out_dir": str(cfg.out_dir)},
+            "images": names, "to_world_mitsuba": [m.tolist() for m in poses],
+            "near_far": [[float(r[15]), float(r[16])] for r in rows],
+            "test_images": [n for i, n in enumerate(names) if i % 8 == 0],
+            "seconds": time.perf_counter() - t0}
+    (out / "meta.json").write_text(json.dumps(meta, indent=1))
+    return meta

@@ -1,0 +1,77 @@
+"""The training loop keeps the best state (chosen on training views) and reports divergence."""
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+import pytest
+
+from comgs_dr.train.loop import BestState, run_loop
+
+
+@dataclasses.dataclass
+class _Cfg:
+    iterations: int = 12
+    log_every: int = 1
+    eval_every: int = 3
+    eval_views: int = 1
+    checkpoint_every: int = 10 ** 9
+    time_limit_s: float | None = None
+
+
+class _FakeTrainer:
+    """A 'model' that is one number; its selection PSNR follows a given curve."""
+
+    def __init__(self, curve):
+        self.curve, self.iteration, self.elapsed, self.log = curve, 0, 0.0, []
+        self.value = 0.0
+        self.restored = None
+
+    def step(self):
+        self.iteration += 1
+        self.value = float(self.iteration)
+        return {"loss": 1.0, "psnr_train": 20.0}
+
+    def evaluate(self, max_views=None):
+        return {"psnr_test": 0.0, "psnr_select": self.curve[self.iteration]}
+
+    def checkpoint(self):
+        pass
+
+    def snapshot(self):
+        return {"value": self.value}
+
+    def restore(self, state):
+        self.value = state["value"]
+        self.restored = state
+
+
+def test_diverging_run_restores_its_best_state():
+    curve = {3: 25.0, 6: 28.0, 9: 26.0, 12: 22.0}           # peaks at iteration 6, then falls
+    tr, best = _FakeTrainer(curve), BestState(tolerance_db=0.5)
+    run_loop(tr, _Cfg(), "test", progress=False, best=best)
+    assert best.iteration == 6 and best.psnr == 28.0
+    with pytest.warns(UserWarning, match="fell from 28.00 dB"):
+        note = best.settle(tr, curve[12], tr.iteration, "test")
+    assert tr.value == 6.0 and note["best_iteration"] == 6 and note["final_psnr_select"] == 22.0
+
+
+def test_converging_run_keeps_its_final_state():
+    curve = {3: 25.0, 6: 27.0, 9: 28.0, 12: 27.8}           # within 0.5 dB of the best
+    tr, best = _FakeTrainer(curve), BestState(tolerance_db=0.5)
+    run_loop(tr, _Cfg(), "test", progress=False, best=best)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert best.settle(tr, curve[12], tr.iteration, "test") is None
+    assert tr.restored is None and tr.value == 12.0
+
+
+def test_nan_final_state_is_replaced():
+    curve = {3: 25.0, 6: float("nan"), 9: float("nan"), 12: float("nan")}
+    tr, best = _FakeTrainer(curve), BestState()
+    run_loop(tr, _Cfg(), "test", progress=False, best=best)
+    assert best.iteration == 3                             # NaN is never "best"
+    with pytest.warns(UserWarning):
+        assert best.settle(tr, float("nan"), tr.iteration, "test") is not None
+    assert tr.value == 3.0
