@@ -191,7 +191,7 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--iterations", type=int, help="training iterations (default 3000)")
     p.add_argument("--resolution-scale", "-r", type=int, default=1, choices=(1, 2, 4, 8))
     p.add_argument("--white-background", action="store_true")
-    p.add_argument("--init", help="auto | hull | points | random | PATH.ply")
+    p.add_argument("--init", help="auto | hull | points | nearfar | random | PATH.ply (nearfar: LLFF near/far frusta, plane-swept depths)")
     p.add_argument("--time-limit", type=float, dest="time_limit_s",
                    help="stop (and checkpoint) after this many seconds")
     p.add_argument("--densify", action="store_true",

@@ -76,7 +76,7 @@ class RadianceConfig:
     sh_degree: int = 2
     sh_increase_every: int = 250          # one SH band more every this many its (3DGS: 1000)
     init_points: int = 20_000
-    init: str = "auto"                    # auto | hull | points | random | <path.ply>
+    init: str = "auto"                    # auto | hull | points | nearfar | random | <path.ply>
     init_normals: bool = False            # surfels tangent to the initial points (PCA)
     init_opacity: float = 0.5             # hull/points init
     lambda_ssim: float = 0.2
@@ -192,10 +192,12 @@ def initial_surfels(data, cfg: RadianceConfig, rng) -> tuple[SurfelParams, str]:
                                      quats=I.normal_quaternions(normals)), desc
     if how == "random":
         if cfg.preset == "scene":
-            warnings.warn("scene preset without dataset points or near/far bounds: random "
-                          "initialisation in the common view frustum (grey, random orientations), "
-                          "measured at 14.1 dB test PSNR on `comgs make-dataset scene --points 0` "
-                          "(30.6 dB with points); give COLMAP points or a points3d.ply", stacklevel=3)
+            why = ("without dataset points or near/far bounds" if near_far is None else
+                   "with init='random' (the poses' near/far bounds are not used)")
+            warnings.warn(f"scene preset {why}: random initialisation in the common view frustum "
+                          "(grey, random orientations), measured at 14.1 dB test PSNR on `comgs "
+                          "make-dataset scene --points 0` (30.6 dB with points); give COLMAP points "
+                          "or a points3d.ply", stacklevel=3)
         pts = I.frustum_points(data.train, cfg.init_points, np.asarray(center), radius, rng)
         return I.surfels_from_points(pts, None, rng), f"random, in the common view frustum ({len(pts)} points)"
     if str(how).endswith(".ply"):
