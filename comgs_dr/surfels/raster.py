@@ -38,7 +38,7 @@ import numpy as np
 
 from comgs_dr.surfels import kernel as Kn
 from comgs_dr.surfels.composite import INVALID, HitBuffer
-from comgs_dr.surfels.shape import _finite_rest
+from comgs_dr.surfels.shape import _finite_rest, proxy_shift
 
 TILE = 8                  # tile side in pixels
 _MARGIN_PX = 0.05          # bounding boxes grow by this much (float error of the fitted projection)
@@ -148,8 +148,7 @@ def surfel_geometry(shapes) -> SurfelGeometry:
             idx = dr.arange(mi.UInt32, m)
             ok = (dr.all(dr.isfinite(mean)) & dr.all(dr.isfinite(q)) & dr.isfinite(op)
                   & dr.all(dr.isfinite(s)) & _finite_rest(p, idx) & (op >= Kn.ALPHA_MIN))
-            hashed = mi.Float((idx * 2654435761) >> 8) * (1.0 / (1 << 24))   # as quad_buffers
-            proxy = mean + n * (sh.proxy_jitter * (hashed - 0.5))
+            proxy = mean + n * proxy_shift(idx, sh.proxy_jitter)
             for k, v in (("p", mean), ("proxy", proxy), ("t_u", t_u), ("t_v", t_v), ("n", n),
                          ("s", s), ("op", op)):
                 parts[k].append(np.array(v, np.float32).reshape(-1, m).T if k != "op"

@@ -185,6 +185,13 @@ def ensure_proxies(scene, shapes) -> None:
         scene.parameters_changed()
 
 
+def proxy_shift(index, jitter: float):
+    """Offset of surfel ``index``'s proxy quad along its normal: jitter·(hash(i) − 0.5),
+    a multiplicative integer hash in [0, 1) (shared by the tracer's quads and the rasteriser)."""
+    hashed = mi.Float((index * 2654435761) >> 8) * (1.0 / (1 << 24))
+    return jitter * (hashed - 0.5)
+
+
 def quad_buffers(p: SurfelParams, jitter: float = 0.0):
     """Proxy geometry: ([4N] Point3f vertices, [2N] Vector3u faces, [N] Bool non-finite).
 
@@ -205,8 +212,7 @@ def quad_buffers(p: SurfelParams, jitter: float = 0.0):
     s = K.scales(ls) * K.QUAD_SIGMA
     a = dr.select((corner == 1) | (corner == 2), 1.0, -1.0)
     b = dr.select(corner >= 2, 1.0, -1.0)
-    hashed = mi.Float((s_idx * 2654435761) >> 8) * (1.0 / (1 << 24))       # [4N] in [0, 1)
-    shift = jitter * (hashed - 0.5)
+    shift = proxy_shift(s_idx, jitter)                                      # [4N]
     v = mean + t_u * (a * s.x) + t_v * (b * s.y) + nrm * shift
     finite = dr.all(dr.isfinite(v)) & dr.all(dr.isfinite(q)) & dr.isfinite(op) & _finite_rest(p, s_idx)
     keep = finite & (op >= K.ALPHA_MIN)
