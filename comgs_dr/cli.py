@@ -50,7 +50,9 @@ def _add_make_dataset(sub) -> None:
                     "truth and relit test views. Omitted values use the defaults of "
                     "comgs_dr.data.synthetic.ObjectDatasetConfig.")
     o.add_argument("--mesh", metavar="M",
-                   help="OBJ/PLY mesh (default: the shared Spot mesh, if present)")
+                   help="OBJ/PLY mesh (default: the shared Spot mesh, if present), or "
+                        "'detail': the built-in stress object (a photo-textured sphere in a "
+                        "cage of sub-pixel to 3 px rods, rings and a slotted sheet)")
     o.add_argument("--envmap", metavar="E",
                    help="HDR/EXR lighting (default: a shared training map)")
     o.add_argument("--out", required=True, metavar="DIR", help="output directory")

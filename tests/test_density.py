@@ -55,7 +55,10 @@ def test_clone_split_prune_counts_and_alignment():
         value, promoted, lr, (t, m, v, vm) = opt.state[f]
         mm = field_to_numpy(f, m, 6)
         mm = mm[:, 0] if mm.ndim == 2 else mm
-        np.testing.assert_array_equal(mm, [0, 4, 5, 0, 0, 0], err_msg=f)   # new surfels: zero moments
+        np.testing.assert_array_equal(mm, [0, 4, 5, 0, 0, 0], err_msg=f)   # new surfels: m = 0
+        vv = field_to_numpy(f, v, 6)
+        vv = vv[:, 0] if vv.ndim == 2 else vv
+        np.testing.assert_array_equal(vv, [100, 104, 105, 100, 101, 101], err_msg=f)  # v: source's
         assert dr.width(v) == dr.width(getattr(out, f))
     # the optimiser still steps with the new sizes
     for f in field_names():
@@ -101,3 +104,12 @@ def test_growth_is_capped_by_fraction():
     # the clones are the surfels with the largest gradients
     top = np.sort(np.argsort(-g)[:10])
     np.testing.assert_allclose(np.sort(out.to_numpy()["means"][200:, 0]), np.sort(p.to_numpy()["means"][top, 0]))
+
+
+def test_schedule_follows_the_run_progress():
+    """``until`` stops densification and resets on the run's clock (iterations or time)."""
+    ctl = DensityController(DensityConfig(start=100, stop=10 ** 6, interval=100, until=0.5,
+                                          opacity_reset_interval=300), 6, extent=1.0)
+    assert not ctl.due(50, 0.01) and ctl.due(100, 0.01) and not ctl.due(150, 0.01)
+    assert ctl.due(1000, 0.5) and not ctl.due(1000, 0.51)        # past half of the budget
+    assert ctl.reset_due(300, 0.2) and not ctl.reset_due(300, 0.6) and not ctl.reset_due(0, 0.0)

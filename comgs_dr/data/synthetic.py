@@ -31,6 +31,7 @@ from tqdm.auto import tqdm
 
 from comgs_dr.core.variant import package_version
 from comgs_dr.data import synthetic_io as sio
+from comgs_dr.data.detail_mesh import write_detail_mesh
 from comgs_dr.data.sfm_points import sample_visible_points, write_points_ply
 from comgs_dr.lighting.envmap import load_envmap
 
@@ -55,6 +56,9 @@ ENVMAP_TO_WORLD = np.array([[0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 
 #: +Y-up mesh files -> +Z-up world: rotation by +90 deg about X, (x, y, z) -> (x, -z, y).
 Y_UP_TO_Z_UP = np.array([[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], float)
 GL_FROM_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])  # flips camera X and Z (self-inverse)
+
+
+BUILTIN_DETAIL_MESH = "detail"   # ``mesh="detail"``: :mod:`comgs_dr.data.detail_mesh`
 
 
 def shared_data_dir() -> Path:
@@ -260,7 +264,10 @@ def make_object_dataset(cfg: ObjectDatasetConfig, progress: bool = True) -> dict
     """
     t0 = time.perf_counter()
     cfg = dataclasses.replace(cfg)  # re-validates numeric fields
-    mesh_path = Path(cfg.mesh) if cfg.mesh is not None else default_mesh()
+    if cfg.mesh is not None and str(cfg.mesh) == BUILTIN_DETAIL_MESH:   # procedural stress object
+        mesh_path = write_detail_mesh(Path(cfg.out_dir) / "source")
+    else:
+        mesh_path = Path(cfg.mesh) if cfg.mesh is not None else default_mesh()
     env_path = Path(cfg.envmap) if cfg.envmap is not None else default_envmap()
     if not mesh_path.is_file():
         raise FileNotFoundError(f"mesh file not found: {mesh_path}")

@@ -62,7 +62,7 @@ class SceneSpec:
 
 
 def scene_dict(spec: SceneSpec, env_bitmap) -> dict:
-    """Mitsuba scene dict: the object (principled BSDF), the envmap and one sensor."""
+    """Mitsuba scene dict: the object (two-sided principled BSDF), the envmap and one sensor."""
     T = mi.ScalarTransform4f
     base = ({"type": "bitmap", "filename": str(spec.texture)} if spec.texture else
             {"type": "rgb", "value": [float(c) for c in spec.base_color]})
@@ -73,9 +73,11 @@ def scene_dict(spec: SceneSpec, env_bitmap) -> dict:
                 "to_world": T(np.asarray(spec.envmap_to_world).tolist())},
         "object": {"type": _MESH_TYPES[spec.mesh.suffix.lower()], "filename": str(spec.mesh),
                    "to_world": T(np.asarray(spec.object_to_world).tolist()),
-                   "bsdf": {"type": "principled", "base_color": base,
-                            "roughness": float(spec.roughness),
-                            "metallic": float(spec.metallic)}},
+                   # two-sided: open meshes (the teapot's rim, thin sheets) show their back
+                   "bsdf": {"type": "twosided", "material": {
+                       "type": "principled", "base_color": base,
+                       "roughness": float(spec.roughness),
+                       "metallic": float(spec.metallic)}}},
         "sensor": {"type": "perspective", "fov": float(spec.fov_deg), "fov_axis": "x",
                    "film": {"type": "hdrfilm", "width": int(spec.resolution),
                             "height": int(spec.resolution), "pixel_format": "rgba",

@@ -165,10 +165,11 @@ def initial_surfels(data, cfg: RadianceConfig, rng) -> tuple[SurfelParams, str]:
             "points" if data.points is not None and len(data.points) >= 4 else
             "nearfar" if near_far is not None else "random")
     if how == "hull":
-        pts, cols = I.visual_hull_points(data.train, cfg.init_points, np.asarray(center), radius, rng)
+        pts, cols = I.hull_ray_points(data.train, cfg.init_points, np.asarray(center), radius, rng)
         quats = I.pca_normal_quaternions(pts) if cfg.init_normals else None
         return I.surfels_from_points(pts, cols, rng, opacity=cfg.init_opacity, quats=quats), \
-            f"visual-hull shell ({len(pts)} points{', PCA normals' if quats is not None else ''})"
+            f"visual-hull surface from the pixels' rays ({len(pts)} points" \
+            f"{', PCA normals' if quats is not None else ''})"
     if how == "points":
         if data.points is None:
             raise ValueError("init='points' but the dataset has no points (use hull or random)")
@@ -285,9 +286,19 @@ class Trainer:
             "surfels.opacity_logit": c.lr_opacity, "surfels.log_scales": c.lr_scales,
             "surfels.quats": c.lr_quats})
 
+    def run_fraction(self) -> float:
+        """Fraction of the run done: iterations, or the time budget when that ends it first.
+        The position learning rate decays and densification stops on this clock, so a run
+        with ``time_limit_s`` uses its whole budget whatever the iteration speed."""
+        c = self.cfg
+        p = self.iteration / max(c.iterations, 1)
+        if c.time_limit_s:
+            p = max(p, self.elapsed / c.time_limit_s)
+        return min(p, 1.0)
+
     def _lr_means(self) -> float:
         c = self.cfg
-        t = min(self.iteration / max(c.iterations, 1), 1.0)
+        t = self.run_fraction()
         return float(self.extent * math.exp((1 - t) * math.log(c.lr_means) + t * math.log(c.lr_means_final)))
 
     def params(self) -> SurfelParams:
@@ -368,12 +379,12 @@ class Trainer:
         stats["psnr_train"] = psnr(c_img, np.asarray(self._target(i, bg)))
         stats["nan_grads"] = nan_grads
         it = self.iteration
-        if self.density.due(it):
+        if self.density.due(it, self.run_fraction()):
             new, counts = self.density.densify_and_prune(self.params(), self.opt,
                                                          {f: k for f, k in PARAM_KEYS.items()}, self.rng)
             self._resize(new, remap="done")
             stats.update({f"densify_{k}": v for k, v in counts.items()})
-        if self.density.reset_due(it):
+        if self.density.reset_due(it, self.run_fraction()):
             new = self.density.reset_opacity(self.params(), self.opt, {"opacity_logit": "surfels.opacity_logit"})
             self.mp["surfels.opacity_logit"] = new.opacity_logit
             self.mp.update(self.opt)

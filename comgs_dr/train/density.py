@@ -2,8 +2,9 @@
 
 Works on numpy copies (every ~100 iterations), keeping the surfel parameters and
 the Adam moments of :class:`drjit.opt.Adam` aligned: surviving surfels keep their
-moments, new ones (clones, split children) start with zero moments, pruned
-ones are dropped — as in 3DGS/2DGS ``densification_postfix``/``prune_points``.
+moments, new ones (clones, split children) start with zero first moments and their
+source's second moments (3DGS/2DGS zero both: see :func:`_remap_optimizer`), pruned
+ones are dropped.
 
 View-space gradient. 3DGS accumulates ‖∂L/∂μ_2D‖ of the projected mean in NDC
 units. A ray tracer has no projected mean, so we use the world-space gradient's
@@ -27,6 +28,7 @@ class DensityConfig:
     """Schedule and thresholds (2DGS defaults rescaled to short CPU runs)."""
     start: int = 300                 # first densification iteration (2DGS: 500)
     stop: int = 2000                 # last densification iteration (2DGS: 15000)
+    until: float = 1.0               # ... and never after this fraction of the run (its or time)
     interval: int = 100
     grad_threshold: float = 2e-4     # mean NDC-space gradient norm that triggers densification
     percent_dense: float = 0.01      # clone if max scale ≤ this · scene extent, else split
@@ -69,13 +71,16 @@ class DensityController:
         self.grad_accum += g * seen
         self.denom += seen
 
-    def due(self, it: int) -> bool:
+    def due(self, it: int, progress: float = 0.0) -> bool:
+        """Densify at iteration ``it``? ``progress``: the run's fraction done (iterations or
+        time budget, whichever is further), compared with ``until``."""
         c = self.cfg
-        return c.start <= it <= c.stop and it % c.interval == 0
+        return c.start <= it <= c.stop and progress <= c.until and it % c.interval == 0
 
-    def reset_due(self, it: int) -> bool:
+    def reset_due(self, it: int, progress: float = 0.0) -> bool:
         c = self.cfg
-        return it > 0 and it % c.opacity_reset_interval == 0 and it <= c.stop
+        return (it > 0 and it % c.opacity_reset_interval == 0 and it <= c.stop
+                and progress <= c.until)
 
     # ------------------------------------------------------------------ edits
     def densify_and_prune(self, params: SurfelParams, opt=None, keys: dict | None = None,
@@ -156,8 +161,11 @@ def _remap_optimizer(opt, keys: dict, src: np.ndarray, old: np.ndarray, new: Sur
         opt[key] = like                      # new shape -> resets the state; restore below
         mm = field_to_numpy(field, m, n_old)[src]
         vv = field_to_numpy(field, v, n_old)[src]
-        mm[~old] = 0
-        vv[~old] = 0
+        mm[~old] = 0                         # new surfels: no momentum, but their source's
+        # second moment: Adam's step count is shared by all surfels, so with v = 0 and no
+        # bias correction a new surfel's step is lr·(1 − 0.9^k)/√(1 − 0.999^k): 6.5× lr after
+        # 10 steps, 3× after 100 (measured: 2DGS-style densification of the detail object
+        # then fell from 22.4 to 19.4 dB test PSNR)
         value2, promoted2, lr2, _ = opt.state[key]
         opt.state[key] = (value2, promoted2, lr, (t, field_from_numpy(field, mm, like),
                                                   field_from_numpy(field, vv, like), None))
