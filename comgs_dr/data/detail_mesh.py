@@ -142,7 +142,7 @@ def atlas_image(size: int = 512) -> np.ndarray:
 
 
 def write_detail_mesh(directory: str | Path) -> Path:
-    """Write ``detail.obj`` (+ ``detail.mtl``, ``detail_texture.png``) into ``directory``."""
+    """Write ``detail.obj`` (+ ``detail.mtl`` naming the atlas PNG) into ``directory``."""
     import trimesh
     from PIL import Image
 
