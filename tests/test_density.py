@@ -46,6 +46,11 @@ def test_clone_split_prune_counts_and_alignment():
     q = out.to_numpy()
     # survivors in order: 0, 4, 5, clone of 0, two children of 1
     np.testing.assert_array_equal(q["sh"][:, 0, 0], [0, 4, 5, 0, 1, 1])
+    # clone and source share the source's coverage: 1 − (1 − α')² = α
+    a0 = 1 / (1 + np.exp(-2.0))
+    a_pair = 1 / (1 + np.exp(-q["opacity_logit"][[0, 3]]))
+    np.testing.assert_allclose(1 - (1 - a_pair) ** 2, a0, rtol=1e-5)
+    np.testing.assert_allclose(q["opacity_logit"][[1, 2, 4, 5]], 2.0)    # others untouched
     children = q["means"][4:]
     assert np.all(np.abs(children[:, 0] - 1.0) < 0.3) and not np.allclose(children[0], children[1])
     np.testing.assert_allclose(q["log_scales"][4:], np.log(np.array([0.05, 0.02]) / 1.6)[None].repeat(2, 0),
@@ -113,3 +118,17 @@ def test_schedule_follows_the_run_progress():
     assert not ctl.due(50, 0.01) and ctl.due(100, 0.01) and not ctl.due(150, 0.01)
     assert ctl.due(1000, 0.5) and not ctl.due(1000, 0.51)        # past half of the budget
     assert ctl.reset_due(300, 0.2) and not ctl.reset_due(300, 0.6) and not ctl.reset_due(0, 0.0)
+
+
+def test_run_fraction_uses_the_time_budget():
+    """The trainer's clock: iterations done, or the time budget when it binds first."""
+    import types
+
+    from comgs_dr.stages.reconstruct import RadianceConfig, Trainer
+    t = types.SimpleNamespace(cfg=RadianceConfig(iterations=1000), iteration=250, elapsed=90.0)
+    assert Trainer.run_fraction(t) == 0.25
+    t.cfg = RadianceConfig(iterations=1000, time_limit_s=100.0)
+    assert Trainer.run_fraction(t) == 0.9
+    t.elapsed = 500.0
+    assert Trainer.run_fraction(t) == 1.0
+

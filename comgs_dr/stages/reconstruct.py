@@ -48,7 +48,10 @@ PARAM_KEYS = {f: f"surfels.{f}" for f in field_names() if f not in ("albedo", "r
 class RadianceConfig:
     """Step-1 settings; ``RadianceConfig.preset(name, **overrides)`` for a named preset.
 
-    Presets (``PRESETS``): ``object`` starts from the visual-hull shell carved from the masks,
+    Presets (``PRESETS``): ``object`` starts from the visual hull's surface along the training
+    pixels' rays (:func:`comgs_dr.train.init.hull_ray_points`; on the detail stress object,
+    ``make-dataset object --mesh detail`` at 100 px, 25.84 dB test PSNR after 600 s against
+    23.06 dB from the volume-carved shell, whose points missed the sub-pixel rods),
     adds the mask loss and caps σ at 1 % of the extent; ``scene`` starts from the dataset's
     points (COLMAP, or ``points3d.ply`` beside NeRF-style JSON), else random points in the
     common view frustum, has no mask loss and caps σ at 2 %.
@@ -64,7 +67,11 @@ class RadianceConfig:
     * colour learning rates 2× 3DGS; larger scale/rotation rates grew hazy surfels (−6 dB).
     * prune-only density control (``densify=None``): objects 28.3/28.6 dB vs 27.1/26.6 dB
       densified at 300/400 its; scenes 30.4 dB vs 20.0 dB with ``scaled_density_schedule``
-      (the opacities had not recovered from the reset). Pass ``densify`` (DensityConfig
+      (the opacities had not recovered from the reset). On the detail stress object 2DGS's
+      clone rules (prune at opacity 0.05, ≤ 10 % clones per 100 its until half of a 600 s
+      budget, no reset) peaked at 23.4 dB (500 its) and then fell to 19.5 dB by 1500 its
+      (the best state was kept), with or without opacity-splitting clones; prune-only
+      reached 25.84 dB in the same 600 s. Pass ``densify`` (DensityConfig
       fields, {} for its 2DGS defaults) to enable clone/split, e.g. after a random init.
     * ``max_scale_frac`` (largest σ / extent; None: the preset's): without a cap a few object
       surfels grew to σ ≈ 0.17–0.3 and hazed the fit (29.9 → 19.8 dB at 1180 its); scenes
@@ -127,6 +134,14 @@ class RadianceConfig:
                            d2n_from_iteration=self.d2n_from)
 
 
+# object: max_scale_frac 0.01 of the extent is not right for every object (open question).
+# The detail stress object (radius 1.55, extent 5.56) fell from 26.67 dB (1750 its) to
+# 22.96 dB (3000 its; the best state is restored) with the σ of 10 % of its surfels at the
+# cap; capped at 0.003 of the extent it still rose at 2500 its (26.46 dB) and led from the
+# start (24.75 vs 22.98 dB at 500). But the 48-view teapot lost ~1 dB with a cap that tight
+# (26.91 vs 27.86 dB at 1000 its): a cap relative to the object's radius or to the initial
+# surfel spacing did not fit both, and densification (which would split large surfels) is
+# not yet stable here.
 # object: lr_scales 1e-3 (not 5e-3). On the 48-view teapot (four rings, −10° to 70°) the
 # σ of ~6 % of the surfels grew to the cap within 1000 its while the test PSNR fell from
 # 28.1 dB (625 its) to 26.0 dB; with 1e-3 none reached it and the PSNR still rose at 875 its

@@ -39,6 +39,7 @@ class DensityConfig:
     opacity_reset_value: float = 0.01
     max_fraction: float = 0.05       # densify at most this fraction of the surfels per step
     max_surfels: int = 300_000       # never grow beyond (densify the largest gradients first)
+    clone_opacity_split: bool = True  # clone and source share the opacity (image unchanged)
 
 
 
@@ -120,6 +121,13 @@ class DensityController:
             off = rng.normal(size=(len(ch), 2)) * s
             new["means"][m:] = p["means"][ch] + np.einsum("sij,sj->si", R[:, :, :2], off)
             new["log_scales"][m:] = p["log_scales"][ch] - np.log(0.8 * c.split_children)
+        if c.clone_opacity_split and clone.any():
+            # a clone sits on its source: the pair covers 1 − (1 − α')², so α' = 1 − √(1 − α)
+            # keeps the image unchanged (Rota Bulò et al. 2024, "Revising densification")
+            both = np.r_[np.nonzero(clone)[0], n + np.arange(int(clone.sum()))]
+            a = 1 / (1 + np.exp(-np.clip(new["opacity_logit"][both], -30, 30)))
+            a2 = np.clip(1 - np.sqrt(np.clip(1 - a, 0, 1)), 1e-6, 1 - 1e-6)
+            new["opacity_logit"][both] = np.log(a2 / (1 - a2))
         opacity = 1 / (1 + np.exp(-np.clip(new["opacity_logit"], -30, 30)))
         big = np.exp(np.clip(new["log_scales"], -20, 12)).max(1) > c.max_scale * self.extent
         finite = np.all([np.all(np.isfinite(v.reshape(len(src), -1)), 1) for v in new.values()], 0)
