@@ -341,7 +341,8 @@ class Trainer:
         image is over the dataset's background b₀, so I_b = I + (1 − α)(b − b₀)."""
         if background is None or background == self.background or self.masks[i] is None:
             return self.targets[i]
-        return self.targets[i] + (1.0 - self.masks[i]) * (background - self.background)
+        shift = dr.opaque(mi.TensorXf, background - self.background, (1, 1, 1))   # no recompile
+        return self.targets[i] + (1.0 - self.masks[i]) * shift
 
     def _step_background(self) -> float | None:
         """A uniform random grey behind this step's render and target (views with alpha).
