@@ -2,7 +2,8 @@
 
 Phases: render (hit finding + forward compositing), loss (L1 + SSIM + d2n + mask), backward
 (image adjoint + adjoint compositing over the cached hit buffer), adam, update (parameters
-into the scene), density (one densify-and-prune, amortised over its interval). Two image
+into the scene), density (one densify-and-prune, amortised over its interval), and
+``step()``: a whole training step as the trainer runs it (random background included). Two image
 sizes x two surfel counts x the two hit-finding methods of ``surfel_gbuffer``, side by side
 in one process: ``trace`` (before: Embree, with the proxy/BVH rebuild that every traced
 step needs, now inside "render") and ``raster`` (tile rasterisation; no BVH).
@@ -76,9 +77,20 @@ def bench(data_dir: Path, n_surfels: int, iters: int, method: str = "raster") ->
                               np.asarray(tr.opt["surfels.means"]).T, np.zeros(3), 0.36)
         new, _ = tr.density.densify_and_prune(tr.params(), tr.opt, dict(PARAM_KEYS), np.random.default_rng(0))
         tick("density", t)
+        # the training step itself (random background, SH/density schedule, logging values):
+        # overheads outside the phases above show here (a background compiled into the
+        # kernels as a literal once recompiled every step: 316 vs 106 ms at 100 px)
+        steps = []
+        for it in range(iters + 2):
+            dr.sync_thread()
+            t = time.perf_counter()
+            tr.step()
+            dr.sync_thread()
+            steps.append(time.perf_counter() - t)
         med = {k: float(np.median(v[2:] if len(v) > 2 else v)) for k, v in T.items()}
         med["density"] /= tr.density.cfg.interval
         med["n"] = tr.params().count
+        med["step"] = float(np.median(steps[2:]))
         return med
 
 
@@ -106,7 +118,7 @@ def main():
           f"drjit {drjit.__version__}, llvm_ad_rgb | median ms per iteration over {a.iters}")
     cols = ("render", "loss", "backward", "adam", "update", "density")
     print(f"{'px':>4} {'surfels':>8} {'method':>7} " + " ".join(f"{c:>8}" for c in cols)
-          + f" {'total':>8} {'it/s':>6} {'speed-up':>8}")
+          + f" {'total':>8} {'it/s':>6} {'speed-up':>8} {'step()':>8}")
     for res in a.sizes:
         data = a.data or make_data(res, root)
         for n in a.surfels:
@@ -116,7 +128,7 @@ def main():
                 tot = sum(r[c] for c in cols)
                 first = first or tot
                 print(f"{res:>4} {r['n']:>8} {m:>7} " + " ".join(f"{1000 * r[c]:>8.1f}" for c in cols)
-                      + f" {1000 * tot:>8.1f} {1 / tot:>6.2f} {first / tot:>7.2f}x")
+                      + f" {1000 * tot:>8.1f} {1 / tot:>6.2f} {first / tot:>7.2f}x {1000 * r['step']:>8.1f}")
 
 
 if __name__ == "__main__":
