@@ -100,21 +100,29 @@ def test_a_new_background_reuses_the_compiled_kernels(rng):
     scene = gbuffer_scene(random_surfels(rng, n=40), cameras.perspective([0, -3, 0], res=8),
                           targets="color,weight", background=0.25)
     integ = scene.integrator()
-    colours, misses = {}, []
+    import re
+
+    def program(k):            # the kernel's code without its name and buffer alignments
+        return re.sub(r"align \d+", "align", re.sub(r"drjit_[0-9a-f]+", "K", k["ir"].getvalue()))
+    colours, known, new = {}, set(), []
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
-        for bg in (0.25, 0.25, 0.5, 0.75):
+        for bg in (0.25, 0.5, 0.75):
             integ.background = bg
             dr.kernel_history()                              # clear
             parts = integ.split(mi.render(scene, spp=1))
             colours[bg] = (np.asarray(parts["color"]), np.asarray(parts["weight"]))
             jit = [k for k in dr.kernel_history() if "cache_hit" in k]   # compiled kernels
             assert jit
-            misses.append(sum(not k["cache_hit"] for k in jit))
+            progs = {program(k) for k in jit}
+            if bg != 0.25:
+                new.append(len(progs - known))
+            known |= progs
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
-    # a re-render recompiles a small kernel anyway (measured: 1); a new grey level no more
-    assert misses[2] == misses[1] and misses[3] == misses[1], misses
+    # Dr.Jit may recompile a kernel whose buffers moved to another alignment; a new grey level
+    # must not change any kernel's code (with a literal it changed the render kernel)
+    assert new == [0, 0], new
     (c0, w), (c1, _) = colours[0.25], colours[0.5]
     w = w.reshape(c0.shape[:2] + (1,))
     assert 0.05 < w.mean() < 0.95                            # some pixels see the background
