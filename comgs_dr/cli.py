@@ -29,6 +29,7 @@ from comgs_dr.stages import train_completion
 from comgs_dr.stages.decompose import MaterialConfig, train_material
 from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light, write_outputs
 from comgs_dr.stages.reconstruct import (
+    PRESETS as RECON_PRESETS,
     RadianceConfig,
     scaled_density_schedule,
     train_radiance,
@@ -202,7 +203,7 @@ def _add_reconstruct(sub) -> None:
                         "presets within CPU budgets; useful after a random init)")
     p.add_argument("--variant", default="auto")
     p.add_argument("--quiet", action="store_true")
-    add_config_arguments(p, RadianceConfig, exclude=("preset",))
+    add_config_arguments(p, RadianceConfig, exclude=("preset",), presets=RECON_PRESETS)
     p.set_defaults(func=_cmd_reconstruct, preset="object")
 
 

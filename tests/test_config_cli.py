@@ -46,3 +46,20 @@ def test_reconstruct_and_decompose_flags_cover_their_configs():
     args = parser.parse_args(["decompose", "RUN", "--lr-env", "0.02", "--no-indirect"])
     cfg = MaterialConfig(**config_overrides(args, MaterialConfig))
     assert cfg.lr_env == 0.02 and cfg.indirect is False and cfg.rays == MaterialConfig.rays
+
+
+def test_help_names_the_presets_own_defaults():
+    """``--lr-scales`` is 5e-3 in the dataclass but 1e-3 in the object preset: --help says both."""
+    p = argparse.ArgumentParser()
+    add_config_arguments(p, _Cfg, presets={"fast": {"rate": 0.9}, "slow": {"iterations": 99}})
+    helps = {a.dest: a.help for a in p._actions}
+    assert helps["rate"] == "(default 0.5; fast preset 0.9)"
+    assert helps["iterations"] == "(default 10; slow preset 99)" and helps["name"] == "(default 'a')"
+    from comgs_dr.stages.reconstruct import PRESETS
+    assert f"object preset {PRESETS['object']['lr_scales']!r}" in _subhelp("reconstruct")
+
+
+def _subhelp(name: str) -> str:
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices[name].format_help()

@@ -34,10 +34,14 @@ def _parse_bool(s: str) -> bool:
     raise argparse.ArgumentTypeError(f"expected true/false, got {s!r}")
 
 
-def add_config_arguments(parser: argparse.ArgumentParser, cls, exclude=()) -> None:
-    """Add ``--field-name`` for every scalar field of dataclass ``cls`` not yet in ``parser``."""
+def add_config_arguments(parser: argparse.ArgumentParser, cls, exclude=(), presets=None) -> None:
+    """Add ``--field-name`` for every scalar field of dataclass ``cls`` not yet in ``parser``.
+
+    ``presets`` ({name: {field: value}}): the help also names the presets' own values, so
+    ``--help`` shows what a run without the flag uses."""
     taken = {a.dest for a in parser._actions}
     defaults = cls()
+    presets = presets or {}
     group = parser.add_argument_group(f"{cls.__name__} fields (defaults from the config)")
     for f in dataclasses.fields(cls):
         tp = _scalar_type(f.type)
@@ -45,7 +49,12 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls, exclude=()) -> No
             continue
         group.add_argument("--" + f.name.replace("_", "-"), dest=f.name, default=None,
                            type=_parse_bool if tp is bool else tp, metavar=tp.__name__.upper(),
-                           help=f"(default {getattr(defaults, f.name)!r})")
+                           help=_default_help(getattr(defaults, f.name), f.name, presets))
+
+
+def _default_help(default, name: str, presets: dict) -> str:
+    own = [f"{p} preset {v[name]!r}" for p, v in presets.items() if name in v]
+    return f"(default {default!r}{'; ' + ', '.join(own) if own else ''})"
 
 
 def config_overrides(args: argparse.Namespace, cls) -> dict:
