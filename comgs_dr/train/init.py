@@ -125,6 +125,19 @@ def visual_hull_points(views, n: int, center: np.ndarray, radius: float, rng: np
 
 
 
+def pixel_rays(camera, x, y) -> tuple[np.ndarray, np.ndarray]:
+    """World rays through film positions (x, y) [M] of a pinhole :class:`Camera` (the inverse
+    of :func:`comgs_dr.data.types.project`): origin [3] and directions [M, 3] whose camera-space
+    z is 1 (so ``o + z·d`` is the point at z-depth z)."""
+    w, h = camera.width, camera.height
+    f = 0.5 * w / np.tan(np.radians(camera.fov_x_deg) / 2)
+    cx = w * (0.5 - getattr(camera, "principal_point_offset_x", 0.0))
+    cy = h * (0.5 - getattr(camera, "principal_point_offset_y", 0.0))
+    T = np.asarray(camera.to_world, np.float64)
+    pc = np.stack([(cx - np.asarray(x)) / f, (cy - np.asarray(y)) / f, np.ones(np.size(x))], 1)
+    return T[:3, 3], pc @ T[:3, :3].T
+
+
 def hull_ray_points(views, n: int, center: np.ndarray, radius: float, rng: np.random.Generator,
                     depths: int = 64, source_alpha: float = 0.25, carve_alpha: float = 0.1,
                     min_fraction: float = 0.95, max_tries: int = 8) -> tuple[np.ndarray, np.ndarray]:
@@ -162,16 +175,11 @@ def hull_ray_points(views, n: int, center: np.ndarray, radius: float, rng: np.ra
                 continue
             v, m = views[j], -(-n // len(views))                        # rays from this view
             cam = v.camera
-            w, h = cam.width, cam.height
+            w = cam.width
             flat = rng.choice(pix[j], m)
             x, y = flat % w + rng.uniform(0, 1, m), flat // w + rng.uniform(0, 1, m)
-            f = 0.5 * w / np.tan(np.radians(cam.fov_x_deg) / 2)
-            cx = w * (0.5 - getattr(cam, "principal_point_offset_x", 0.0))   # as types.project
-            cy = h * (0.5 - getattr(cam, "principal_point_offset_y", 0.0))
-            T = np.asarray(cam.to_world, np.float64)
-            d = np.stack([(cx - x) / f, (cy - y) / f, np.ones(m)], 1) @ T[:3, :3].T
+            o, d = pixel_rays(cam, x, y)
             d /= np.linalg.norm(d, axis=1, keepdims=True)                  # [m, 3]
-            o = T[:3, 3]
             b = d @ (o - center)                                          # ray–sphere
             disc = b * b - (np.sum((o - center) ** 2) - radius * radius)
             hit = disc > 0
@@ -290,9 +298,6 @@ def near_far_points(views, near_far, n: int, rng: np.random.Generator, candidate
         m_ = len(idx)
         cam = v.camera
         w, h = cam.width, cam.height
-        f = 0.5 * w / np.tan(np.radians(cam.fov_x_deg) / 2)
-        cx = w * (0.5 - getattr(cam, "principal_point_offset_x", 0.0))   # as types.project
-        cy = h * (0.5 - getattr(cam, "principal_point_offset_y", 0.0))
         ix, iy = rng.integers(0, w, m_), rng.integers(0, h, m_)
         # random position in the pixel; its centre when matching (the reference patch's)
         jit = rng.uniform(0, 1, (m_, 2)) if k == 1 else np.full((m_, 2), 0.5)
@@ -301,12 +306,10 @@ def near_far_points(views, near_far, n: int, rng: np.random.Generator, candidate
         # k stratified disparities per point (k = 1: uniform in [1/far, 1/near])
         s = 1.0 / far + (np.arange(k) + rng.uniform(0, 1, (m_, k))) / k * (1.0 / near - 1.0 / far)
         z = 1.0 / s                                                        # [m, k]
-        pc = np.stack([(cx - x) / f, (cy - y) / f, np.ones(m_)], 1)       # Mitsuba camera, z = 1
-        m = np.asarray(cam.to_world, np.float64)
-        d = pc @ m[:3, :3].T                                               # world ray (|d_z| = 1)
+        o, d = pixel_rays(cam, x, y)                                       # |d_z| = 1 in camera
         if k > 1 and len(views) > 1:
             nb = np.argsort(np.linalg.norm(centers - centers[j], axis=1))[1:1 + int(neighbours)]
-            cand = m[:3, 3] + d[:, None, :] * z[..., None]                # [m, k, 3]
+            cand = o + d[:, None, :] * z[..., None]                # [m, k, 3]
             others = [views[i] for i in nb]
             best = np.concatenate([                                        # bounded memory
                 _photo_consistent(v.image, ix[c:c + 2048], iy[c:c + 2048], cand[c:c + 2048],
@@ -314,7 +317,7 @@ def near_far_points(views, near_far, n: int, rng: np.random.Generator, candidate
             z = z[np.arange(m_), best]
         else:
             z = z[:, 0]
-        pts[idx] = m[:3, 3] + d * z[:, None]
+        pts[idx] = o + d * z[:, None]
         nrm[idx] = -d / np.linalg.norm(d, axis=1, keepdims=True)
         cols[idx] = v.image[iy, ix, :3]
     return pts.astype(np.float32), cols, nrm.astype(np.float32)
