@@ -7,11 +7,13 @@ Mitsuba pipeline only needs ``import comgs_dr`` before loading our XML.
 import mitsuba as mi
 
 from comgs_dr.core.variant import is_supported_variant
+from comgs_dr.emitters import octenvmap
 from comgs_dr.integrators import sop_pbr, surfel_gbuffer
 from comgs_dr.surfels import shape
 
 SHAPES = ("surfels",)
 INTEGRATORS = ("surfel_gbuffer", "sop_pbr")
+EMITTERS = ("octenvmap",)
 _registered: set[str] = set()
 _callback_installed = False
 
@@ -34,10 +36,13 @@ def register_all() -> None:
             mi.register_shape(p, _refuse("shape", p))
         for p in INTEGRATORS:
             mi.register_integrator(p, _refuse("integrator", p))
+        for p in EMITTERS:
+            mi.register_emitter(p, _refuse("emitter", p))
         _registered.add(name)
         return
     # Each module builds its variant-specific class when the plugin is first instantiated.
     shape.register()
+    octenvmap.register()
     surfel_gbuffer.register()
     sop_pbr.register()
     _registered.add(name)

@@ -278,9 +278,9 @@ def test_sop_pbr_plugin_renders_from_files(tmp_path, rng):
     # occlusion darkens the plane under the sphere: both visibility sources see it
     assert imgs["sops"].mean() < imgs["none"].mean()
     assert imgs["trace"].mean() < imgs["none"].mean()
-    with pytest.raises(Exception) as e:
-        mi.load_dict({**base, "integrator": {"type": "sop_pbr"}})
-    assert "envmap" in error_chain_text(e.value)
+    with pytest.raises(Exception) as e:       # no map: neither a file nor an octenvmap emitter
+        mi.render(mi.load_dict({**base, "integrator": {"type": "sop_pbr", "visibility": "none"}}))
+    assert "octenvmap" in error_chain_text(e.value)
     with pytest.raises(Exception) as e:
         mi.load_dict({**base, "integrator": {"type": "sop_pbr", "envmap": str(env_path),
                                              "visibility": "sops"}})

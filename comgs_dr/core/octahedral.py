@@ -191,6 +191,24 @@ class BorderRefresher:
         return out
 
 
+class BorderGather:
+    """Interior tiles [P, R, R, C] (flat) -> the bordered atlas [P, R+2, R+2, C] (flat), as one
+    differentiable gather: the adjoint adds the gradient of every border texel onto the
+    interior texel it copies (so texels next to seams learn like the others)."""
+
+    def __init__(self, n_tiles: int, res: int, channels: int):
+        src = border_source_index(res)                                   # [(R+2)²]
+        texel = (np.arange(n_tiles)[:, None] * res * res + src[None, :]).ravel()
+        full = (texel[:, None] * channels + np.arange(channels)[None]).ravel()
+        self.index = mi.UInt32(full.astype(np.uint32))
+        self.size = n_tiles * res * res * channels
+
+    def __call__(self, interior):
+        if dr.width(interior) != self.size:
+            raise ValueError(f"interior atlas has {dr.width(interior)} values, expected {self.size}")
+        return dr.gather(type(interior), interior, self.index)
+
+
 # ---------------------------------------------------------------------------------------
 # Bilinear lookup into a bordered atlas (Dr.Jit, differentiable w.r.t. the atlas)
 

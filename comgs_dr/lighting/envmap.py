@@ -176,6 +176,7 @@ class OctEnvmap:
     def refresh(self):
         """Clamp θ and restore the wrap border (call after every optimiser step)."""
         self.theta = self._border(dr.clip(dr.detach(self.theta), *LOG_RANGE))
+        self._sampler = None
 
     def radiance_np(self) -> np.ndarray:
         """Interior radiance, [R, R, 3] float64."""
@@ -202,8 +203,25 @@ class OctEnvmap:
         dr.eval(radiance)
         return octa.lookup(radiance, taps, 3)
 
+    def eval_world(self, d, theta=None):
+        """The shading code's interface (as ``octenvmap``'s): :meth:`eval`."""
+        return self.eval(d, theta)
+
     def sampler(self, floor: float = 1e-3) -> "EnvSampler":
         return EnvSampler(self.radiance_np(), floor)
+
+    def _cached_sampler(self) -> "EnvSampler":
+        if getattr(self, "_sampler", None) is None:      # rebuilt after refresh()
+            self._sampler = self.sampler()
+        return self._sampler
+
+    def sample_world(self, u):
+        """(direction, solid-angle pdf) ∝ the current map's luminance (:class:`EnvSampler`)."""
+        s = self._cached_sampler().sample(u)
+        return s.direction, s.pdf
+
+    def pdf_world(self, d):
+        return self._cached_sampler().pdf(d)
 
 
 @dataclass

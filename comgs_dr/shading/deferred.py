@@ -42,16 +42,31 @@ class DeferredPbr:
         self._mat_integ = mi.load_dict({"type": "surfel_gbuffer", "max_hits": max_hits,
                                         "targets": "albedo,roughness,metallic"})
         self._geo = {}
+        self._geo_version = None
         self.max_hits = max_hits
 
-    def geometry(self, sensor: int) -> dict:
-        """Cached (until :meth:`clear`) shading-point geometry of ``sensor``'s covered pixels."""
-        if sensor in self._geo:
-            return self._geo[sensor]
-        s = self.scene.sensors()[sensor]
+    def _sensor(self, sensor):
+        """(sensor object, cache key): an index into the scene's sensors or a sensor object
+        (keyed by its identity, pose and film size, so a moved sensor is re-traced)."""
+        if isinstance(sensor, int):
+            return self.scene.sensors()[sensor], sensor
+        pose = np.asarray(sensor.world_transform().matrix, np.float32).tobytes()
+        return sensor, (id(sensor), pose, tuple(sensor.film().crop_size()))
+
+    def geometry(self, sensor) -> dict:
+        """Cached shading-point geometry of ``sensor``'s covered pixels (an index or a sensor
+        object). The cache is dropped by :meth:`clear` and when the surfels' geometry
+        changes (their ``geometry_version``; material updates keep it)."""
         shapes = composite.surfel_shapes(self.scene, "DeferredPbr")
         if len(shapes) != 1:
             raise ValueError(f"DeferredPbr: needs exactly one surfels shape, got {len(shapes)}")
+        version = getattr(shapes[0], "geometry_version", 0)
+        if version != self._geo_version:
+            self._geo.clear()
+            self._geo_version = version
+        s, key = self._sensor(sensor)
+        if key in self._geo:
+            return self._geo[key]
         K = self.max_hits
         with dr.suspend_grad():
             dirs, origins = camera_rays(s)
@@ -87,10 +102,10 @@ class DeferredPbr:
             dr.while_loop((mi.UInt32(0), dr.full(mi.Float, 1.0, P)),
                           lambda k, T: k < count, body, label="blend weights")
             dr.eval(ids, wts, x, n, d, W)
-        geo = {"pix": pix, "pix_np": np.asarray(pix, np.int64), "shape": (h, w),
+        geo = {"pix": pix, "pix_np": np.asarray(pix, np.int64), "shape": (h, w), "dirs": ray.d,
                "W": W, "W_np": np.asarray(W).reshape(h, w), "x": x, "n": n, "wo": mi.Vector3f(-d),
                "ids": ids, "w": wts}
-        self._geo[sensor] = geo
+        self._geo[key] = geo
         return geo
 
     def surfel_materials(self) -> dict:
@@ -101,10 +116,10 @@ class DeferredPbr:
     def clear(self):
         self._geo.clear()
 
-    def material_buffers(self, sensor: int, params=None) -> dict:
+    def material_buffers(self, sensor, params=None) -> dict:
         """Albedo/roughness/metallic tensors [H, W, c] (premultiplied by W) rendered with
         ``mi.render`` (reference path; differentiable when ``params`` is given)."""
-        s = self.scene.sensors()[sensor]
+        s, _ = self._sensor(sensor)
         img = mi.render(self.scene, params, sensor=s, integrator=self._mat_integ)
         return self._mat_integ.split(img)
 
@@ -154,3 +169,22 @@ class DeferredPbr:
         img = img + (1.0 - Wall * keep) * bg
         flat = dr.ravel(img)         # [H*W*3] interleaved
         return mi.TensorXf(flat, shape=(h, w, 3))
+
+    @staticmethod
+    def compose_linear(c, geo, alpha: bool = False, background=None):
+        """Linear image [H, W, 3] (or [H, W, 4] with ``alpha``): W·c on covered pixels plus
+        (1 − W)·``background`` (a ``mi.Color3f`` per pixel [H*W], e.g. the environment seen
+        through it; None = black), alpha = W. Differentiable w.r.t. ``c`` and ``background``."""
+        h, w = geo["shape"]
+        Wp = dr.gather(mi.Float, geo["W"], geo["pix"])
+        img = dr.zeros(mi.Color3f, h * w)
+        dr.scatter(img, Wp * c, geo["pix"])
+        keep = dr.zeros(mi.Float, h * w)
+        dr.scatter(keep, 1.0, geo["pix"])
+        cover = geo["W"] * keep                                           # [H*W]
+        if background is not None:
+            img = img + (1.0 - cover) * background
+        if alpha:
+            flat = dr.ravel(mi.Vector4f(img.x, img.y, img.z, cover))
+            return mi.TensorXf(flat, shape=(h, w, 4))
+        return mi.TensorXf(dr.ravel(img), shape=(h, w, 3))

@@ -47,12 +47,18 @@ class SopVisibility:
         if filter not in ("bilinear", "nearest"):
             raise ValueError(f"SopVisibility: filter must be 'bilinear' or 'nearest', got {filter!r}")
         self.atlas, self.grid, self.res, self.k, self.filter = atlas, grid, res, k, filter
-        self.knn = None
+        self.knn, self._knn_key = None, None
 
     def prepare(self, pts):
+        """KNN weights of the points (reused while the same position variables come back:
+        fixed geometry is queried once per view)."""
+        key = tuple(c.index for c in (pts.position.x, pts.position.y, pts.position.z))
+        if key == self._knn_key and all(key):
+            return
         with dr.suspend_grad():
             self.knn = query(self.grid, dr.detach(pts.position), dr.detach(pts.normal), self.k)
             dr.eval(self.knn.index, self.knn.weight)
+        self._knn_key = key
 
     def lookup(self, pid, wi, need_radiance: bool):
         if self.knn is None:

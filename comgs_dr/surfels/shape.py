@@ -30,6 +30,8 @@ def is_surfel_shape(obj) -> bool:
     return is_kind(obj, SurfelShapeBase)
 
 
+# fields that change where rays hit (materials and colour do not: caches of hits survive them)
+GEOMETRY_FIELDS = ("means", "quats", "log_scales", "opacity_logit")
 PROXY_JITTER = 1e-4        # proxy depth offsets span this fraction of the surfels' bbox diagonal
 
 
@@ -99,6 +101,7 @@ class SurfelShapeBase:
             setattr(self.params, f, getattr(params, f))
         self._rebuild()
         self.version += 1
+        self.geometry_version += 1
 
     def surfel_count(self) -> int:
         return self.params.count
@@ -121,9 +124,11 @@ class SurfelShapeBase:
             return
         if not keys or any(k in field_names() for k in keys):
             self._n = self._check_widths()
-            self._update_jitter()
-            self.proxies_stale = True
             self.version = getattr(self, "version", 0) + 1
+            if not keys or any(k in GEOMETRY_FIELDS for k in keys):
+                self._update_jitter()
+                self.proxies_stale = True
+                self.geometry_version = getattr(self, "geometry_version", 0) + 1
 
     def _update_jitter(self):
         with dr.suspend_grad():
@@ -171,6 +176,7 @@ class SurfelShapeBase:
         self.proxies_stale = False
         if not hasattr(self, "version"):
             self.version = 0          # bumped by parameter changes (not by lazy rebuilds)
+            self.geometry_version = 0     # bumped by changes of GEOMETRY_FIELDS only
 
     def to_string(self):
         return f"SurfelShape[id={self.id()}, surfels={self.params.count}, sh_degree={self.params.sh_degree}]"
