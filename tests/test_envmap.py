@@ -132,8 +132,9 @@ def test_sampler_pdf_consistency_and_normalisation(rng):
     d = _unit(rng, 400000)
     integral = np.array(sampler.pdf(_vec(d))).mean() * 4 * np.pi
     assert abs(integral - 1) < 0.05
-    # the 1e6 sun texel holds almost all the probability, radiance stays finite
-    assert sampler.pmf_np.max() > 0.9
+    # the 1e6 sun texel (dilated to its 3×3 neighbours, which bilinear lookups light)
+    # holds almost all the probability, radiance stays finite
+    assert np.sort(sampler.pmf_np)[-9:].sum() > 0.9
     assert np.all(np.isfinite(np.array(env.eval(s.direction))))
 
 

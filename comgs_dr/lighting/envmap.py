@@ -23,6 +23,7 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+from scipy.ndimage import maximum_filter
 
 from comgs_dr.core import octahedral as octa
 from comgs_dr.core.colorspace import LUMA
@@ -233,14 +234,19 @@ class EnvSample:
 class EnvSampler:
     """Texel-intensity importance sampling of an [R, R, 3] octahedral map (exact pdf).
 
-    Texel probability ∝ luminance·solid angle + ``floor``·(mean of that) so no direction
-    has zero density; within a texel the point is uniform in uv.
+    Texel probability ∝ (3×3 max of the luminance)·solid angle + ``floor``·(mean of that) so
+    no direction has zero density; within a texel the point is uniform in uv.
     """
 
     def __init__(self, radiance: np.ndarray, floor: float = 1e-3):
         r = radiance.shape[0]
         self.res = r
-        lum = np.maximum(np.asarray(radiance, np.float64) @ LUMA, 0.0).ravel()
+        lum = np.maximum(np.asarray(radiance, np.float64) @ LUMA, 0.0)          # [R, R]
+        # Lookups are bilinear, so a texel next to a bright one returns up to ~its value:
+        # the weight is the 3×3 maximum (across the seams, via the wrap border), so the
+        # ratio radiance/pdf stays bounded (a one-texel sun otherwise gave fireflies).
+        bordered = octa.add_border_np(lum[None, ..., None])[0, ..., 0]          # [R+2, R+2]
+        lum = maximum_filter(bordered, size=3, mode="nearest")[1:-1, 1:-1].ravel()
         w = lum * octa.texel_solid_angles_np(r)
         w = w + floor * max(w.mean(), 1e-30)
         if not np.all(np.isfinite(w)) or w.sum() <= 0:
