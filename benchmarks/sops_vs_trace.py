@@ -118,10 +118,10 @@ def main(argv=None) -> int:
         print(f"  done {probes} probes, {rays} rays: sops {tot(sp):.3f} s/it, trace "
               f"{tot(tr):.3f} s/it", flush=True)
     print()
-    hdr = ("| probes | rays | source | gbuf s | shade s | backward s | step s | s/it | speed-up "
+    hdr = ("| probes | rays | source | render s | backward s | step s | s/it | speed-up "
            "| test PSNR | relight PSNR | albedo PSNR | setup (place+bake) s |")
     print(hdr)
-    print("|" + "---|" * 13)
+    print("|" + "---|" * 12)
     for probes, rays, r in rows:
         t_tr = sum(r["trace"]["median_step_split_s"].values())
         for vis in ("sops", "trace"):
@@ -130,7 +130,7 @@ def main(argv=None) -> int:
             tot = sum(sp.values())
             st = s["setup_timings_s"]
             setup = st.get("placement_s", 0) + st.get("bake_s", 0)
-            print(f"| {probes} | {rays} | {vis} | {sp['t_gbuffer']:.3f} | {sp['t_shade']:.3f} | "
+            print(f"| {probes} | {rays} | {vis} | {sp['t_render']:.3f} | "
                   f"{sp['t_backward']:.3f} | {sp['t_step']:.3f} | {tot:.3f} | "
                   f"{t_tr / tot:.2f}x | {s['psnr_test']:.2f} | {s['relight_psnr']:.2f} | "
                   f"{s['albedo_psnr']:.2f} | {setup:.1f} |")

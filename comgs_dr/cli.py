@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+from pathlib import Path
 
 from comgs_dr import set_variant
 from comgs_dr.core.config import add_config_arguments, config_overrides
@@ -24,6 +25,7 @@ from comgs_dr.data.load import load_dataset
 from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
 from comgs_dr.demo import DemoConfig, run_demo, scene_dataset_config
 from comgs_dr.lighting import backends
+from comgs_dr.shading.shade import SAMPLINGS
 from comgs_dr.shading.visibility import KINDS
 from comgs_dr.stages import train_completion
 from comgs_dr.stages.decompose import MaterialConfig, train_material
@@ -36,6 +38,7 @@ from comgs_dr.stages.reconstruct import (
 )
 from comgs_dr.stages.relight import relight_run
 from comgs_dr.stages.render_run import render_run
+from comgs_dr.surfels.edit import parse_mask_spec, parse_material_spec
 from comgs_dr.train.run import write_run_info
 
 # ----------------------------------------------------------------------------- make-dataset
@@ -287,9 +290,21 @@ def _add_relight(sub) -> None:
                                    "albedo PSNR, when the dataset has the ground truth).")
     p.add_argument("run", metavar="RUN_DIR")
     p.add_argument("--envmap", required=True, metavar="MAP")
-    p.add_argument("--material", metavar="DIR", help="step-2 folder (default RUN_DIR/material)")
+    p.add_argument("--material-dir", metavar="DIR", help="step-2 folder (default RUN_DIR/material)")
+    p.add_argument("--material", metavar="EDIT",
+                   help="edit the object's material before relighting: comma-separated "
+                        "albedo=R,G,B (linear) or scale=S[,S,S], roughness=X, metallic=Y, "
+                        "e.g. albedo=0.8,0.1,0.1,roughness=0.2")
+    p.add_argument("--material-mask", metavar="MASK",
+                   help="surfels the edit applies to: box:x0,y0,z0,x1,y1,z1 (world space) or a "
+                        "file of surfel indices (.npy or text); default the whole object")
     p.add_argument("--views", choices=("test", "train"), default="test")
-    p.add_argument("--rays", type=int, default=256)
+    p.add_argument("--rays", type=int, default=256, help="S_r per shading point (default 256)")
+    p.add_argument("--sampling", choices=SAMPLINGS, default="mis",
+                   help="estimator: mis = env-map + BRDF importance sampling (default), "
+                        "uniform = the paper's training estimator")
+    p.add_argument("--envmap-res", type=int, help="octahedral resolution of the map (default: "
+                   "an equirect map's height, at most 1024)")
     p.add_argument("--max-views", type=int)
     p.add_argument("--scale", type=float, default=1.0, help="env map radiance scale")
     p.add_argument("--out", metavar="DIR")
@@ -300,9 +315,18 @@ def _add_relight(sub) -> None:
 
 def _cmd_relight(args) -> int:
     set_variant(args.variant)
-    r = relight_run(args.run, args.envmap, args.material, args.views, args.rays,
+    edit = parse_material_spec(args.material) if args.material else None
+    mask = None
+    if args.material_mask:
+        if edit is None:
+            raise SystemExit("comgs relight: --material-mask needs --material")
+        from comgs_dr.surfels import load_ply
+        mdir = Path(args.material_dir) if args.material_dir else Path(args.run) / "material"
+        mask = parse_mask_spec(args.material_mask, load_ply(str(mdir / "point_cloud.ply")).count)
+    r = relight_run(args.run, args.envmap, args.material_dir, args.views, args.rays,
                     envmap_scale=args.scale, out_dir=args.out, progress=not args.quiet,
-                    max_views=args.max_views)
+                    max_views=args.max_views, sampling=args.sampling, edit=edit,
+                    edit_mask=mask, envmap_res=args.envmap_res)
     extra = "".join(f", {k} {r[k]:.3f}" for k in ("relight_psnr", "relight_ssim", "albedo_psnr")
                     if k in r)
     print(f"relit {r['views']} {args.views} views under {args.envmap} "

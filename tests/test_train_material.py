@@ -97,9 +97,19 @@ def test_cli_decompose_and_relight(tiny_run, capsys):
                "--rays", "8", "--probes", "100", "--env-res", "16", "--quiet"])
     assert rc == 0
     assert "step 2 (sops) done" in capsys.readouterr().out
-    rc = main(["relight", str(run), "--material", str(run / "mat_cli"), "--envmap", str(sky),
+    rc = main(["relight", str(run), "--material-dir", str(run / "mat_cli"), "--envmap", str(sky),
                "--rays", "8", "--quiet"])
     assert rc == 0
     assert "relit 2 test views" in capsys.readouterr().out
-    assert main(["relight", str(run), "--material", str(run / "nope"), "--envmap",
+    assert main(["relight", str(run), "--material-dir", str(run / "nope"), "--envmap",
                  str(sky), "--quiet"]) == 2
+    # material edit: a red metal, darker than the grey-ish original on average in G and B
+    out_edit = run / "edit_out"
+    rc = main(["relight", str(run), "--material-dir", str(run / "mat_cli"), "--envmap", str(sky),
+               "--rays", "8", "--quiet", "--material", "albedo=0.9,0.05,0.05,roughness=0.3,metallic=1",
+               "--out", str(out_edit)])
+    assert rc == 0
+    m = json.loads((out_edit / "metrics.json").read_text())
+    assert m["edit"]["albedo"] == [0.9, 0.05, 0.05] and m["edit"]["metallic"] == 1.0
+    assert main(["relight", str(run), "--material-dir", str(run / "mat_cli"), "--envmap", str(sky),
+                 "--quiet", "--material", "albedo=2,0,0"]) == 2

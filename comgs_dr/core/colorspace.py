@@ -7,6 +7,7 @@ convention); stages that need linear radiance convert *after* compositing
 from __future__ import annotations
 
 import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 
@@ -68,3 +69,16 @@ def srgb_decode(c):
     c = as_float(c)
     hi = ((c.clip(0.04045, None) + 0.055) / 1.055) ** 2.4
     return _where(c <= 0.04045, c / 12.92, hi)
+
+
+def display_composite(img, background: float):
+    """Linear RGBA [H, W, 4] (premultiplied, alpha = coverage W) -> display sRGB [H, W, 3]
+    over ``background``: W·srgb(C/W) + (1 − W)·bg, as the photos (differentiable)."""
+    h, w = img.shape[0], img.shape[1]
+    flat = img.array
+    base = dr.arange(mi.UInt32, h * w) * 4
+    a = dr.gather(mi.Float, flat, base + 3)
+    rgb = mi.Color3f(*(dr.gather(mi.Float, flat, base + c) for c in range(3)))
+    straight = rgb / dr.maximum(a, 1e-6)
+    out = a * linear_to_srgb(straight) + (1.0 - a) * background
+    return mi.TensorXf(dr.ravel(out), shape=(h, w, 3))

@@ -164,6 +164,14 @@ class SopPbrBase:
         self._pbr.env, self._pbr.visibility, self._pbr.cfg = env, vis, cfg
         return self._pbr
 
+    def shading_points(self, scene, sensor=0):
+        """(ShadingPoints, geometry) of a sensor's covered pixels (an index or a sensor):
+        geometry cached, materials blended from the surfels' current (attached) parameters."""
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        pbr = self._deferred(scene, self.environment(scene), self._visibility(scene), self.cfg)
+        return pbr.shading_points(sensor)
+
     def render_attached(self, scene, sensor=0, seed=0, spp=0, alpha=None):
         """The image as a differentiable expression of the current parameters (no custom op)."""
         if not isinstance(sensor, int) and not isinstance(sensor, mi.Sensor):

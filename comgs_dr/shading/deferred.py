@@ -51,7 +51,7 @@ class DeferredPbr:
         if isinstance(sensor, int):
             return self.scene.sensors()[sensor], sensor
         pose = np.asarray(sensor.world_transform().matrix, np.float32).tobytes()
-        return sensor, (id(sensor), pose, tuple(sensor.film().crop_size()))
+        return sensor, (sensor.ptr, pose, tuple(sensor.film().crop_size()))
 
     def geometry(self, sensor) -> dict:
         """Cached shading-point geometry of ``sensor``'s covered pixels (an index or a sensor

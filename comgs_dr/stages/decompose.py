@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,18 +30,19 @@ import mitsuba as mi
 import numpy as np
 from tqdm.auto import tqdm
 
-from comgs_dr.core import octahedral as octa
+from comgs_dr.core.colorspace import display_composite
+from comgs_dr.emitters.octenvmap import OctEnvmapBase
 from comgs_dr.eval.metrics import psnr
-from comgs_dr.lighting.envmap import OctEnvmap
-from comgs_dr.shading.deferred import DeferredPbr
-from comgs_dr.shading.shade import ShadingConfig, shade
-from comgs_dr.shading.visibility import KINDS, make_visibility
+from comgs_dr.lighting.envmap import LOG_RANGE, OctEnvmap
+from comgs_dr.shading.shade import SAMPLINGS
+from comgs_dr.shading.visibility import KINDS
 from comgs_dr.sops.bake import bake
 from comgs_dr.sops.placement import PlacementConfig, place_probes
 from comgs_dr.sops.probes import ProbeSet
 from comgs_dr.surfels import load_ply, save_ply
 from comgs_dr.surfels.params import object_size
 from comgs_dr.surfels.scene import gbuffer_scene
+from comgs_dr.surfels.shape import SurfelShapeBase
 from comgs_dr.train import checkpoint as ck
 from comgs_dr.train import losses as L
 from comgs_dr.train.loop import finish, run_loop
@@ -86,15 +88,31 @@ class MaterialConfig:
         if self.visibility not in KINDS:
             raise ValueError(f"MaterialConfig.visibility must be sops, trace or none, got "
                              f"{self.visibility!r}")
+        if self.sampling not in SAMPLINGS:
+            raise ValueError(f"MaterialConfig.sampling must be one of {', '.join(SAMPLINGS)}, "
+                             f"got {self.sampling!r}")
         if self.iterations < 1 or self.rays < 1:
             raise ValueError("MaterialConfig: iterations and rays must be ≥ 1")
 
 
-CKPT_FORMAT = "comgs_dr.material_checkpoint/1"
+CKPT_FORMAT = "comgs_dr.material_checkpoint/2"
 MAT_KEYS = ("surfels.albedo", "surfels.roughness", "surfels.metallic")
+ENV_KEY, SOPS_KEY = "env.theta", "integrator.probe_data"
 
 
 class MaterialTrainer:
+    """Step 2 as a Mitsuba optimisation: ``mi.render`` of the ``sop_pbr`` integrator
+    (lit by an ``octenvmap`` emitter) + ``dr.backward``, with Adam on
+    ``mi.traverse(scene)`` keys: the surfels' materials, the probe textures
+    (``integrator.probe_data``) and the map's log radiance θ (``env.data = exp θ``, a
+    latent variable: scale-free steps, HDR without overflow).
+
+    Training keeps the paper's uniform-hemisphere estimator (``MaterialConfig.sampling``):
+    the map starts constant, where sampling it is uniform on the sphere (half the samples
+    below the horizon), and its table would be rebuilt every step; each pixel gets its own
+    rotation of the Hammersley set. Rendering (relight, the plugin) uses MIS.
+    """
+
     def __init__(self, run_dir, out_dir=None, cfg: MaterialConfig = MaterialConfig(),
                  progress: bool = True, data=None):
         self.cfg, self.progress = cfg, progress
@@ -117,53 +135,59 @@ class MaterialTrainer:
             params.metallic = mi.Float(np.full(n, cfg.init_metallic, np.float32))
         self.views, self.test = self.data.train, self.data.test
         sensors = [v.camera.sensor_dict() for v in self.views + self.test]
-        self.scene = gbuffer_scene({"surfels": params}, sensors, max_hits=cfg.max_hits,
-                                   targets="weight")
         self.object_size = object_size(params)
         self.timings = {}
-        self.env = OctEnvmap.constant(cfg.env_res, cfg.env_init)
-        self.probes = None
+        probe_path = None
         if cfg.visibility == "sops":
-            self.probes = self._make_probes(params)
-        self.vis = make_visibility(cfg.visibility, scene=self.scene, probes=self.probes,
-                                   k=cfg.probe_k, trace_hits=cfg.trace_hits,
-                                   offset_frac=cfg.trace_offset)
-        if self.probes is not None:
-            self.sops_target = mi.Float(self.probes.atlas())
-            self._sops_border = octa.BorderRefresher(self.probes.count, self.probes.res, 4)
-            is_occ = (dr.arange(mi.UInt32, dr.width(self.sops_target)) % 4) == 3
-            self._sops_is_occ = is_occ
-            self._sops_w = dr.select(is_occ, 1.0, 1.0 / 3.0)
-        shading = ShadingConfig(rays=cfg.rays, sampling=cfg.sampling, indirect=cfg.indirect)
-        self.pbr = DeferredPbr(self.scene, self.env, self.vis, shading, cfg.max_hits)
+            probe_path = self._make_probes(params, sensors)
+        self.shape = SurfelShapeBase.from_params(params, id="surfels")
+        integ = {"type": "sop_pbr", "visibility": cfg.visibility, "rays": cfg.rays,
+                 "sampling": cfg.sampling, "indirect": cfg.indirect, "hide_emitters": True,
+                 "max_hits": cfg.max_hits, "trace_hits": cfg.trace_hits, "probe_k": cfg.probe_k,
+                 "trace_offset": cfg.trace_offset * self.object_size}
+        if probe_path is not None:
+            integ["probes"] = str(probe_path)
+        scene = {"type": "scene", "surfels": self.shape, "integrator": integ,
+                 "env": OctEnvmapBase.from_radiance(np.full((cfg.env_res,) * 2 + (3,), cfg.env_init),
+                                                    id="env")}
+        for i, sd in enumerate(sensors):
+            scene[f"sensor_{i:03d}"] = {**sd, "film": {**sd["film"], "pixel_format": "rgba"}}
+        self.scene = mi.load_dict(scene)
+        self.integrator = self.scene.integrator()
         self.mp = mi.traverse(self.scene)
-        self.mp.keep(r"surfels\.(albedo|roughness|metallic)")
+        self.mp.keep(r"surfels\.(albedo|roughness|metallic)|env\.data|integrator\.probe_data")
         self.opt = mi.ad.Adam(lr=cfg.lr_material)
         for k in MAT_KEYS:
             self.opt[k] = self.mp[k]
-        self.opt["env"] = self.env.theta
-        lrs = {"env": cfg.lr_env}
-        if self.probes is not None:
-            self.opt["sops"] = self.vis.atlas
-            lrs["sops"] = cfg.lr_sops
+        self.opt[ENV_KEY] = mi.Float(np.log(np.full(cfg.env_res ** 2 * 3, cfg.env_init, np.float32)))
+        lrs = {ENV_KEY: cfg.lr_env}
+        self.has_sops = cfg.visibility == "sops"
+        if self.has_sops:
+            self.opt[SOPS_KEY] = self.mp[SOPS_KEY]
+            lrs[SOPS_KEY] = cfg.lr_sops
+            self.sops_target = mi.TensorXf(self.mp[SOPS_KEY])      # baked L_tr, O_tr
+            is_occ = (dr.arange(mi.UInt32, dr.width(self.sops_target.array)) % 4) == 3
+            self._sops_is_occ = is_occ
+            self._sops_w = dr.select(is_occ, 1.0, 1.0 / 3.0)
         self.opt.set_learning_rate(lrs)
         self.iteration, self.elapsed, self.log = 0, 0.0, []
+        self.nonfinite_total = 0
         if resumed is not None:
             self._restore(resumed)
-        self.mp.update(self.opt)
+        self._apply()
         self.targets = [mi.TensorXf(v.image.astype(np.float32)) for v in self.views]
         t0 = time.perf_counter()
         for j in tqdm(range(len(self.views) + len(self.test)), desc="G-buffers", unit="view",
                       disable=not progress):
-            self.pbr.geometry(j)        # fixed geometry: traced once per view (cached)
+            self.integrator.shading_points(self.scene, j)   # fixed geometry: traced once per view
         self.timings["gbuffers_s"] = time.perf_counter() - t0
         dr.eval()
 
     # ------------------------------------------------------------------ probes
-    def _make_probes(self, params):
+    def _make_probes(self, params, sensors) -> Path:
         path = self.out_dir / "probes_init.npz"
         if path.exists():
-            return ProbeSet.load(path)
+            return path
         t0 = time.perf_counter()
         cams = [v.camera for v in self.views]
         probes = place_probes(params, cams, PlacementConfig(
@@ -171,64 +195,83 @@ class MaterialTrainer:
             offset_frac=self.cfg.probe_offset, max_hits=self.cfg.max_hits),
             object_size=self.object_size, seed=self.cfg.seed)
         t1 = time.perf_counter()
-        bake(self.scene, probes, self.cfg.bake_hits, self.cfg.bake_supersample,
-             progress=self.progress)
+        bake(gbuffer_scene({"surfels": params}, sensors[:1], targets="weight"), probes,
+             self.cfg.bake_hits, self.cfg.bake_supersample, progress=self.progress)
         t2 = time.perf_counter()
         self.timings.update(placement_s=t1 - t0, bake_s=t2 - t1)
         probes.meta["timings"] = {"placement_s": t1 - t0, "bake_s": t2 - t1}
         probes.save(path)
-        return probes
+        return path
 
     # ------------------------------------------------------------------ step
-    def materials(self) -> dict:
-        return {"albedo": self.opt["surfels.albedo"], "roughness": self.opt["surfels.roughness"],
-                "metallic": self.opt["surfels.metallic"]}
+    def _apply(self):
+        """Optimiser variables -> scene parameters (env.data = exp θ)."""
+        r = self.cfg.env_res
+        self.mp["env.data"] = mi.TensorXf(dr.exp(self.opt[ENV_KEY]), shape=(r, r, 3))
+        self.mp.update(self.opt)
 
-    def _render(self, i, seed=0):
-        return self.pbr.render(i, self.materials(), seed=seed, background=self.bg, display=True,
-                               env_theta=self.opt["env"])
+    def render(self, i, seed=0, grad=True):
+        """Display-sRGB image of view ``i`` (train views, then test views)."""
+        img = mi.render(self.scene, self.mp if grad else None, sensor=i, seed=seed,
+                        seed_grad=seed + (1 << 20))
+        return display_composite(img, self.bg)
 
     def step(self) -> dict:
         c = self.cfg
         i = int(self.rng.integers(len(self.views)))
-        if self.probes is not None:
-            self.vis.atlas = self.opt["sops"]
         t0 = time.perf_counter()
-        pts, geo = self.pbr.shading_points(i, self.materials())
-        dr.eval(pts.albedo, pts.roughness, pts.metallic)
-        dr.sync_thread()
-        t1 = time.perf_counter()
-        col = shade(pts, self.env, self.vis, self.pbr.cfg, self.iteration, self.opt["env"])
-        img = self.pbr.compose(col, geo, self.bg, display=True)
+        self._apply()
+        img = self.render(i, seed=self.iteration)
         loss = L.rgb_loss(img, self.targets[i], c.lambda_ssim)
         stats = {}
         if c.lambda_lam > 0:
+            pts, _ = self.integrator.shading_points(self.scene, i)
             # 1/P as an opaque variable: a literal would recompile the backward per view
             inv_p = dr.opaque(mi.Float, 1.0 / max(pts.count, 1))
             lam = (dr.sum(dr.abs(pts.roughness - 1.0)) + dr.sum(pts.metallic)) * inv_p
             loss = loss + c.lambda_lam * lam
-        if self.probes is not None and c.lambda_sops > 0:
+        if self.has_sops and c.lambda_sops > 0:
             # L1(L_in, L_tr) + L1(O, O_tr): channel weights 1/3,1/3,1/3,1, mean × 4
-            lsops = 4.0 * dr.mean(self._sops_w * dr.abs(self.opt["sops"] - self.sops_target))
+            lsops = 4.0 * dr.mean(self._sops_w * dr.abs(self.opt[SOPS_KEY].array - self.sops_target.array))
             loss = loss + c.lambda_sops * lsops
             stats["sops"] = float(lsops[0])
         dr.eval(loss, img)
         dr.sync_thread()
-        t2 = time.perf_counter()
+        t1 = time.perf_counter()
         dr.backward(loss)
-        dr.eval([dr.grad(self.opt[k]) for k in self.opt.keys()])
+        bad = self._guard_gradients()
         dr.sync_thread()
-        t3 = time.perf_counter()
+        t2 = time.perf_counter()
         self.opt.step()
         self._clamp()
+        self._apply()
         dr.eval()
         dr.sync_thread()
-        t4 = time.perf_counter()
+        t3 = time.perf_counter()
         self.iteration += 1
         stats.update(loss=float(loss[0]), psnr_train=psnr(np.asarray(img), self.views[i].image),
-                     t_gbuffer=t1 - t0, t_shade=t2 - t1, t_backward=t3 - t2, t_step=t4 - t3,
-                     points=pts.count)
+                     t_render=t1 - t0, t_backward=t2 - t1, t_step=t3 - t2)
+        if bad:
+            stats["nonfinite_grads"] = bad
         return stats
+
+    def _guard_gradients(self) -> int:
+        """Non-finite gradient entries are zeroed (never applied), counted and reported."""
+        bad = 0
+        for k in self.opt.keys():
+            g = dr.grad(self.opt[k])
+            flat = g.array if dr.is_tensor_v(g) else g
+            ok = dr.isfinite(flat)
+            nb = int(dr.count(~dr.all(ok) if dr.size_v(flat) > 1 else ~ok)[0])
+            if nb:
+                bad += nb
+                fixed = dr.select(ok, flat, 0)
+                dr.set_grad(self.opt[k], type(g)(fixed, g.shape) if dr.is_tensor_v(g) else fixed)
+        if bad:
+            self.nonfinite_total += bad
+            warnings.warn(f"step 2, iteration {self.iteration}: {bad} non-finite gradient "
+                          "entries zeroed (not applied)", stacklevel=2)
+        return bad
 
     def _clamp(self):
         c = self.cfg
@@ -236,13 +279,11 @@ class MaterialTrainer:
         o["surfels.albedo"] = dr.clip(o["surfels.albedo"], 0.0, 1.0)
         o["surfels.roughness"] = dr.clip(o["surfels.roughness"], c.min_roughness, 1.0)
         o["surfels.metallic"] = dr.clip(o["surfels.metallic"], 0.0, 1.0)
-        self.env.theta = o["env"]
-        self.env.refresh()
-        o["env"] = self.env.theta
-        if self.probes is not None:
-            a = dr.detach(o["sops"])
-            a = dr.select(self._sops_is_occ, dr.clip(a, 0.0, 1.0), dr.maximum(a, 0.0))
-            o["sops"] = self._sops_border(a)
+        o[ENV_KEY] = dr.clip(o[ENV_KEY], *LOG_RANGE)
+        if self.has_sops:
+            a = o[SOPS_KEY]
+            o[SOPS_KEY] = mi.TensorXf(dr.select(self._sops_is_occ, dr.clip(a.array, 0.0, 1.0),
+                                                dr.maximum(a.array, 0.0)), a.shape)
 
     # ------------------------------------------------------------------ eval / io
     def evaluate(self, max_views: int | None = None) -> dict:
@@ -252,12 +293,20 @@ class MaterialTrainer:
         ps = []
         for j in np.linspace(0, len(vs) - 1, n).round().astype(int):
             with dr.suspend_grad():
-                img = self._render(off + int(j), seed=12345)
+                img = self.render(off + int(j), seed=12345, grad=False)
             ps.append(psnr(np.asarray(img), vs[j].image))
         return {"psnr_test": float(np.mean(ps))}
 
+    def materials(self) -> dict:
+        return {"albedo": self.opt["surfels.albedo"], "roughness": self.opt["surfels.roughness"],
+                "metallic": self.opt["surfels.metallic"]}
+
+    def env_radiance(self) -> np.ndarray:
+        r = self.cfg.env_res
+        return np.exp(np.array(dr.detach(self.opt[ENV_KEY]), np.float64)).reshape(r, r, 3)
+
     def _keys(self) -> dict:
-        return {k: k for k in list(MAT_KEYS) + ["env"] + (["sops"] if self.probes is not None else [])}
+        return {k: k for k in list(MAT_KEYS) + [ENV_KEY] + ([SOPS_KEY] if self.has_sops else [])}
 
     def checkpoint(self):
         ck.save_checkpoint(self.out_dir / ck.CKPT_NAME, CKPT_FORMAT,
@@ -275,6 +324,8 @@ class MaterialTrainer:
 
     @staticmethod
     def _from_numpy(name, a, like):
+        if isinstance(like, mi.TensorXf):
+            return mi.TensorXf(np.ascontiguousarray(np.reshape(a, like.shape), np.float32))
         return type(like)(*a) if np.ndim(a) == 2 else type(like)(a)
 
     def _restore(self, resumed):
@@ -282,21 +333,19 @@ class MaterialTrainer:
         for k in self._keys():
             self.opt[k] = self._from_numpy(k, arrays[k], self.opt[k])
         ck.restore_moments(self.opt, self._keys(), moments, self._from_numpy)
-        self.env.theta = self.opt["env"]
-        if self.probes is not None:
-            self.vis.atlas = self.opt["sops"]
         self.iteration, self.elapsed, self.log = state["iteration"], state["elapsed"], state["log"]
 
     def save_outputs(self) -> dict:
-        self.mp.update(self.opt)
-        shape = self.scene.shapes()[0]
-        save_ply(shape.params, str(self.out_dir / "point_cloud.ply"))
-        self.env.save(self.out_dir / "envmap.exr")
-        self.env.save(self.out_dir / "envmap_equirect.exr", equirect_width=4 * self.env.res)
+        self._apply()
+        save_ply(self.shape.params, str(self.out_dir / "point_cloud.ply"))
+        env = OctEnvmap(self.env_radiance())
+        env.save(self.out_dir / "envmap.exr")
+        env.save(self.out_dir / "envmap_equirect.exr", equirect_width=4 * env.res)
         paths = {"ply": "point_cloud.ply", "envmap": "envmap.exr"}
-        if self.probes is not None:
-            self.probes.set_from_atlas(self.opt["sops"])
-            self.probes.save(self.out_dir / "probes.npz")
+        if self.has_sops:
+            probes = ProbeSet.load(self.out_dir / "probes_init.npz")
+            probes.texture = np.array(dr.detach(self.opt[SOPS_KEY]), np.float32).reshape(probes.texture.shape)
+            probes.save(self.out_dir / "probes.npz")
             paths["probes"] = "probes.npz"
         return paths
 
@@ -308,12 +357,13 @@ def train_material(run_dir, out_dir=None, cfg: MaterialConfig = MaterialConfig()
     stopped_early = run_loop(tr, cfg, f"step 2 ({cfg.visibility})", progress)
     final = tr.evaluate()
     paths = tr.save_outputs()
-    its = [r for r in tr.log if "t_gbuffer" in r]
+    its = [r for r in tr.log if "t_render" in r]
     split = {k: float(np.median([r[k] for r in its])) for k in
-             ("t_gbuffer", "t_shade", "t_backward", "t_step")} if its else {}
+             ("t_render", "t_backward", "t_step")} if its else {}
     summary = {"iterations": tr.iteration, "train_seconds": tr.elapsed,
                "stopped_early": stopped_early, **final, "median_step_split_s": split,
                "setup_timings_s": tr.timings, "outputs": paths,
-               "probes": None if tr.probes is None else tr.probes.count,
+               "nonfinite_gradients": tr.nonfinite_total,
+               "probes": ProbeSet.load(tr.out_dir / "probes.npz").count if tr.has_sops else None,
                "config": dataclasses.asdict(cfg)}
     return finish(tr, tr.out_dir, summary)

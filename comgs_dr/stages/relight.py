@@ -16,6 +16,7 @@ Metrics (per view, averaged), when the dataset holds the ground truth that
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -24,16 +25,14 @@ import mitsuba as mi
 import numpy as np
 from tqdm import tqdm
 
-from comgs_dr.core.colorspace import srgb_encode
+from comgs_dr.core.colorspace import display_composite, srgb_encode
 from comgs_dr.data.images import write_png8
 from comgs_dr.data.nerf import split_frames
 from comgs_dr.eval import metrics as M
-from comgs_dr.lighting.envmap import OctEnvmap
-from comgs_dr.shading.deferred import DeferredPbr
-from comgs_dr.shading.shade import ShadingConfig
-from comgs_dr.shading.visibility import make_visibility
 from comgs_dr.surfels import load_ply
-from comgs_dr.surfels.scene import gbuffer_scene
+from comgs_dr.surfels.edit import MaterialEdit, edit_materials
+from comgs_dr.surfels.params import object_size
+from comgs_dr.surfels.shape import SurfelShapeBase
 from comgs_dr.train import checkpoint as ck
 from comgs_dr.train.run import load_run_dataset, read_run_info, select_views
 
@@ -55,8 +54,14 @@ def _display(x):
 def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: int = 256,
                 visibility: str | None = None, indirect: bool | None = None,
                 envmap_scale: float = 1.0, out_dir=None, progress: bool = True,
-                max_views: int | None = None) -> dict:
-    """Render ``views`` of a finished step-2 run under ``envmap``; write PNGs + metrics."""
+                max_views: int | None = None, sampling: str = "mis",
+                edit: MaterialEdit | None = None, edit_mask=None,
+                envmap_res: int | None = None) -> dict:
+    """Render ``views`` of a finished step-2 run under ``envmap`` with ``mi.render`` of the
+    ``sop_pbr`` integrator (``sampling='mis'``: env-map + BRDF importance sampling) lit by
+    an ``octenvmap`` emitter at the map's full resolution (an equirect map's height, at
+    most 1024, unless ``envmap_res``); optional material ``edit`` (whole object or
+    ``edit_mask``); writes PNGs + metrics."""
     run_dir = Path(run_dir)
     mdir = Path(material_dir) if material_dir else run_dir / "material"
     log = mdir / "train_log.json"
@@ -67,19 +72,30 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
     data = load_run_dataset(run_dir, info)
     vs = select_views(data.test if views == "test" else data.train, max_views)
     params = load_ply(str(mdir / "point_cloud.ply"))
+    if edit is not None and not edit.empty:
+        params = edit_materials(params, edit, edit_mask)
     env_path = Path(envmap)
-    env = OctEnvmap.from_file(env_path, res=256, scale=envmap_scale)
-    scene = gbuffer_scene({"surfels": params}, [v.camera.sensor_dict() for v in vs],
-                          targets="weight")
     kind = visibility or summary["config"]["visibility"]
     same_light = env_path.resolve() == Path(json.loads(
         (Path(info["data"]) / "meta.json").read_text()).get("envmap", "")).resolve() \
         if (Path(info["data"]) / "meta.json").exists() else False
     use_indirect = same_light if indirect is None else indirect
-    vis = make_visibility(kind, scene=scene, probes=mdir / "probes.npz",
-                          k=summary["config"]["probe_k"], trace_hits=summary["config"]["trace_hits"],
-                          offset_frac=summary["config"]["trace_offset"])
-    pbr = DeferredPbr(scene, env, vis, ShadingConfig(rays=rays, indirect=use_indirect))
+    emitter = {"type": "octenvmap", "filename": str(env_path), "scale": float(envmap_scale)}
+    if envmap_res:
+        emitter["resolution"] = int(envmap_res)
+    integ = {"type": "sop_pbr", "visibility": kind, "rays": rays, "sampling": sampling,
+             "indirect": use_indirect, "hide_emitters": True,
+             "probe_k": summary["config"]["probe_k"], "trace_hits": summary["config"]["trace_hits"],
+             "trace_offset": summary["config"]["trace_offset"] * object_size(params)}
+    if kind == "sops":
+        integ["probes"] = str(mdir / "probes.npz")
+    scene_d = {"type": "scene", "surfels": SurfelShapeBase.from_params(params, id="surfels"),
+               "env": emitter, "integrator": integ}
+    for i, v in enumerate(vs):
+        sd = v.camera.sensor_dict()
+        scene_d[f"sensor_{i:03d}"] = {**sd, "film": {**sd["film"], "pixel_format": "rgba"}}
+    scene = mi.load_dict(scene_d)
+    integrator = scene.integrator()
     bg = 1.0 if data.white_background else 0.0
     out = Path(out_dir) if out_dir else mdir / f"relight_{env_path.stem}_{views}"
     out.mkdir(parents=True, exist_ok=True)
@@ -90,8 +106,9 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
                   disable=not progress):
         v = vs[i]
         with dr.suspend_grad():
-            img = np.asarray(pbr.render(i, seed=7, background=bg, display=True))
-            pts, geo = pbr.shading_points(i)
+            rgba = mi.render(scene, sensor=i, seed=7)
+            img = np.asarray(display_composite(rgba, bg))
+            pts, geo = integrator.shading_points(scene, i)
         write_png8(out / f"{v.name.replace('/', '_')}.png", img)
         rec = {"view": v.name}
         stem = Path(v.name).name
@@ -127,6 +144,7 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
     keys = sorted({k for r in per_view for k in r if k != "view"})
     res = {k: float(np.mean([r[k] for r in per_view if k in r])) for k in keys}
     res.update(envmap=str(env_path), views=len(vs), indirect=use_indirect, visibility=kind,
-               rays=rays, per_view=per_view)
+               rays=rays, sampling=sampling, envmap_res=scene.environment().res,
+               edit=None if edit is None else dataclasses.asdict(edit), per_view=per_view)
     ck.atomic_write_text(out / "metrics.json", json.dumps(res, indent=1))
     return res

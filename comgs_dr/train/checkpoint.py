@@ -87,7 +87,7 @@ def restore_moments(opt, keys: dict, moments: dict, from_numpy) -> None:
         key = keys.get(name)
         if key is None or key not in opt.state:
             continue
-        value, promoted, lr, (t0, _, _, vmax) = opt.state[key]
-        like = opt[key]
+        value, promoted, lr, (t0, m0, _, vmax) = opt.state[key]
+        like = opt[key] if m0 is None else m0       # Adam keeps a tensor's moments flat
         opt.state[key] = (value, promoted, lr, (type(t0)(t), from_numpy(name, m, like),
                                                  from_numpy(name, v, like), vmax))
