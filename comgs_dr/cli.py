@@ -327,7 +327,8 @@ def _cmd_relight(args) -> int:
                     envmap_scale=args.scale, out_dir=args.out, progress=not args.quiet,
                     max_views=args.max_views, sampling=args.sampling, edit=edit,
                     edit_mask=mask, envmap_res=args.envmap_res)
-    extra = "".join(f", {k} {r[k]:.3f}" for k in ("relight_psnr", "relight_ssim", "albedo_psnr")
+    extra = "".join(f", {k} {r[k]:.3f}" for k in ("relight_psnr", "relight_psnr_aligned",
+                                                   "relight_ssim", "albedo_psnr")
                     if k in r)
     print(f"relit {r['views']} {args.views} views under {args.envmap} "
           f"(visibility {r['visibility']}, indirect {r['indirect']}){extra}")

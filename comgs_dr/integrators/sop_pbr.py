@@ -64,6 +64,10 @@ class SopPbrBase:
        - |string|
        - ``mis`` (env-map + BRDF importance sampling, balance heuristic), ``uniform`` (the
          paper's training estimator) or ``cosine`` (Default: mis)
+     * - decorrelate
+       - |bool|
+       - A random rotation of the sample set per shading point (Default: true; false
+         shares one set across the image, as the paper's training estimator)
      * - min_roughness
        - |float|
        - Roughness clamp at shading time (Default: 0; MIS needs none)
@@ -109,7 +113,8 @@ class SopPbrBase:
             raise ValueError(f"sop_pbr: 'sampling' must be one of {', '.join(SAMPLINGS)}, got {sampling!r}")
         self.cfg = ShadingConfig(rays=int(props.get("rays", 256)), sampling=sampling,
                                  indirect=bool(props.get("indirect", True)),
-                                 min_roughness=float(props.get("min_roughness", 0.0)))
+                                 min_roughness=float(props.get("min_roughness", 0.0)),
+                                 decorrelate=bool(props.get("decorrelate", True)))
         self.hide_emitters = bool(props.get("hide_emitters", False))
         self.max_hits = int(props.get("max_hits", 32))
         self.trace_hits = int(props.get("trace_hits", 8))

@@ -100,8 +100,9 @@ def direction_set(rays: int, seed: int) -> np.ndarray:
 
 def _point_offsets(n_pts: int, seed: int, dims: int):
     """Per-point Cranley–Patterson offsets in [0, 1)^dims (PCG32 stream per point)."""
-    rng = mi.PCG32(n_pts, initstate=mi.UInt64(int(seed) * 0x9E3779B9 + 0x5851F42D),
-                   initseq=dr.arange(mi.UInt64, n_pts))
+    # the seed is opaque: as a literal it would recompile the kernels for every seed
+    state = dr.opaque(mi.UInt64, (int(seed) * 0x9E3779B9 + 0x5851F42D) % (1 << 64))
+    rng = mi.PCG32(n_pts, initstate=state, initseq=dr.arange(mi.UInt64, n_pts))
     return [rng.next_float32() for _ in range(dims)]
 
 
@@ -122,7 +123,7 @@ def _sample_points(n_pts: int, s: int, seed: int, decorrelate: bool, blocks=None
         ox, oy, ol = (dr.gather(mi.Float, o, pid) for o in off)
     else:
         o = np.random.default_rng(seed).random(3).astype(np.float32)
-        ox, oy, ol = (mi.Float(float(v)) for v in o)
+        ox, oy, ol = (dr.opaque(mi.Float, float(v)) for v in o)
     frac = lambda x: x - dr.floor(x)                                       # noqa: E731
     one = brdf._ONE_MINUS
     u = mi.Point2f(dr.minimum(frac(uu.x + ox), one), dr.minimum(frac(uu.y + oy), one))

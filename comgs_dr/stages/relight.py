@@ -120,6 +120,16 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
             gt_disp = a * _display(straight) + (1 - a) * bg
             rec["relight_psnr"] = M.psnr(np.clip(img, 0, 1), gt_disp)
             rec["relight_ssim"] = M.ssim(np.clip(img, 0, 1), gt_disp)
+            # per-channel scale alignment (the light's and albedo's scale ambiguity):
+            # s_c = median(gt_c / ours_c) of the linear straight colour over covered pixels
+            lin = np.asarray(rgba, np.float64)
+            Wp = lin[..., 3:4]
+            ours = lin[..., :3] / np.maximum(Wp, 1e-6)
+            cov = (a[..., 0] > 0.99) & (Wp[..., 0] > 0.99) & (ours.min(-1) > 1e-6)
+            if cov.sum() >= 10:
+                sc = np.array([np.median(straight[..., c][cov] / ours[..., c][cov]) for c in range(3)])
+                aligned = Wp * _display(ours * sc) + (1 - Wp) * bg
+                rec["relight_psnr_aligned"] = M.psnr(aligned, gt_disp)
         fr = frames.get(stem)
         if fr is not None and info["resolution_scale"] == 1:
             base = Path(info["data"])
