@@ -21,6 +21,8 @@ centres).
 """
 from __future__ import annotations
 
+import functools
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -105,7 +107,13 @@ def texel_directions_np(res: int) -> np.ndarray:
 
 def texel_solid_angles_np(res: int, sub: int = 8) -> np.ndarray:
     """Solid angle of each texel of an R×R map, [R*R] row-major, by sub×sub midpoint
-    integration of the exact Jacobian (sums to 4π within ~1e-4 relative for sub=8)."""
+    integration of the exact Jacobian (sums to 4π within ~1e-4 relative for sub=8).
+    Cached per (R, sub) (0.4 s at R = 256; env-map sampling tables are rebuilt per step)."""
+    return _texel_solid_angles(int(res), int(sub)).copy()
+
+
+@functools.lru_cache(maxsize=8)
+def _texel_solid_angles(res: int, sub: int) -> np.ndarray:
     c = (np.arange(res * sub) + 0.5) / (res * sub)
     u, v = np.meshgrid(c, c)
     p = 2.0 * np.stack([u, v], -1) - 1.0
