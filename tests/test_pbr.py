@@ -26,15 +26,19 @@ def _points(n, normal=(0, 0, 1), wo=None, albedo=0.8, rough=0.5, metal=0.0, pos=
                          metallic=dr.full(mi.Float, metal, n))
 
 
+def _furnace_points(rng, n, rough):
+    """n white dielectric points with random normals, viewed along the normal."""
+    nn = rng.normal(size=(n, 3))
+    nn /= np.linalg.norm(nn, axis=1, keepdims=True)
+    return ShadingPoints(position=dr.zeros(mi.Point3f, n), normal=_v(nn), wo=_v(nn),
+                         albedo=mi.Color3f(dr.full(mi.Float, 1.0, n)),
+                         roughness=dr.full(mi.Float, rough, n), metallic=dr.zeros(mi.Float, n))
+
+
 @pytest.mark.parametrize("sampling", ["uniform", "cosine"])
 def test_white_furnace(rng, sampling):
     """A white Lambertian under a constant map L renders ≈ L (+ its small specular)."""
-    n = 500
-    nn = rng.normal(size=(n, 3))
-    nn /= np.linalg.norm(nn, axis=1, keepdims=True)
-    pts = ShadingPoints(position=dr.zeros(mi.Point3f, n), normal=_v(nn), wo=_v(nn),
-                        albedo=mi.Color3f(dr.full(mi.Float, 1.0, n)),
-                        roughness=dr.full(mi.Float, 1.0, n), metallic=dr.zeros(mi.Float, n))
+    pts = _furnace_points(rng, 500, 1.0)
     env = OctEnvmap.constant(16, 2.0)
     c = np.asarray(shade(pts, env, NoVisibility(), ShadingConfig(rays=256, sampling=sampling,
                                                                   indirect=False)))
@@ -46,12 +50,7 @@ def test_white_furnace(rng, sampling):
 def test_white_furnace_mis_matches_in_expectation(rng):
     """MIS under a constant map: per-point noise, but the mean equals the exact cosine
     estimate (diffuse 2.0 + the small specular) within 1 %."""
-    n = 2000
-    nn = rng.normal(size=(n, 3))
-    nn /= np.linalg.norm(nn, axis=1, keepdims=True)
-    pts = ShadingPoints(position=dr.zeros(mi.Point3f, n), normal=_v(nn), wo=_v(nn),
-                        albedo=mi.Color3f(dr.full(mi.Float, 1.0, n)),
-                        roughness=dr.full(mi.Float, 0.6, n), metallic=dr.zeros(mi.Float, n))
+    pts = _furnace_points(rng, 2000, 0.6)
     env = OctEnvmap.constant(16, 2.0)
     ref = np.asarray(shade(pts, env, NoVisibility(), ShadingConfig(rays=1024, sampling="cosine")))
     c = np.asarray(shade(pts, env, NoVisibility(), ShadingConfig(rays=64, sampling="mis")))

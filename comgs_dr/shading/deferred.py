@@ -155,20 +155,11 @@ class DeferredPbr:
 
     @staticmethod
     def compose(c, geo, background=0.0, display=False):
-        h, w = geo["shape"]
-        Wp = dr.gather(mi.Float, geo["W"], geo["pix"])
-        bg = mi.Color3f(background)
+        """Image [H, W, 3] of shaded colours ``c``: premultiplied by coverage, ``background``
+        behind, in the output's space (display sRGB with ``display``)."""
         if display:
             c = colorspace.linear_to_srgb(c)
-        img = dr.zeros(mi.Color3f, h * w)
-        # premultiplied by coverage, background behind (in the output's space)
-        dr.scatter(img, Wp * c, geo["pix"])
-        Wall = geo["W"]
-        keep = dr.zeros(mi.Float, h * w)
-        dr.scatter(keep, 1.0, geo["pix"])
-        img = img + (1.0 - Wall * keep) * bg
-        flat = dr.ravel(img)         # [H*W*3] interleaved
-        return mi.TensorXf(flat, shape=(h, w, 3))
+        return DeferredPbr.compose_linear(c, geo, False, mi.Color3f(background))
 
     @staticmethod
     def compose_linear(c, geo, alpha: bool = False, background=None):

@@ -45,7 +45,7 @@ from comgs_dr.surfels.scene import gbuffer_scene
 from comgs_dr.surfels.shape import SurfelShapeBase
 from comgs_dr.train import checkpoint as ck
 from comgs_dr.train import losses as L
-from comgs_dr.train.loop import finish, run_loop
+from comgs_dr.train.loop import finish, run_loop, zero_nonfinite_grads
 from comgs_dr.train.run import load_run_dataset, read_run_info
 
 
@@ -257,16 +257,7 @@ class MaterialTrainer:
 
     def _guard_gradients(self) -> int:
         """Non-finite gradient entries are zeroed (never applied), counted and reported."""
-        bad = 0
-        for k in self.opt.keys():
-            g = dr.grad(self.opt[k])
-            flat = g.array if dr.is_tensor_v(g) else g
-            ok = dr.isfinite(flat)
-            nb = int(dr.count(~dr.all(ok) if dr.size_v(flat) > 1 else ~ok)[0])
-            if nb:
-                bad += nb
-                fixed = dr.select(ok, flat, 0)
-                dr.set_grad(self.opt[k], type(g)(fixed, g.shape) if dr.is_tensor_v(g) else fixed)
+        bad = zero_nonfinite_grads(self.opt, list(self.opt.keys()))
         if bad:
             self.nonfinite_total += bad
             warnings.warn(f"step 2, iteration {self.iteration}: {bad} non-finite gradient "

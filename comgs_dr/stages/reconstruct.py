@@ -37,7 +37,7 @@ from comgs_dr.train import checkpoint as ck
 from comgs_dr.train import init as I
 from comgs_dr.train import losses as L
 from comgs_dr.train.density import DensityConfig, DensityController
-from comgs_dr.train.loop import BestState, finish, run_loop
+from comgs_dr.train.loop import BestState, finish, run_loop, zero_nonfinite_grads
 
 CKPT_FORMAT = "comgs_dr.checkpoint/1"
 NEAR_CLIP_FRAC, FAR_CLIP_FRAC = 1e-4, 1e4     # sensor clip planes × the scene extent
@@ -408,15 +408,7 @@ class Trainer:
 
     def _guard_gradients(self) -> int:
         """Replace non-finite gradients by 0 (counted, logged) so one bad ray cannot poison Adam."""
-        bad = 0
-        for key in PARAM_KEYS.values():
-            g = dr.grad(self.opt[key])
-            ok = dr.isfinite(g)
-            nb = int(dr.count(~dr.all(ok) if dr.size_v(g) > 1 else ~ok)[0])
-            if nb:
-                bad += nb
-                dr.set_grad(self.opt[key], dr.select(ok, g, 0))
-        return bad
+        return zero_nonfinite_grads(self.opt, PARAM_KEYS.values())
 
     def _clamp(self):
         """Keep raw parameters in the ranges where activations are well behaved."""

@@ -19,11 +19,28 @@ import time
 import warnings
 from pathlib import Path
 
+import drjit as dr
 from tqdm.auto import tqdm
 
 from comgs_dr.train.checkpoint import atomic_write_text
 
 LOG_NAME = "train_log.json"
+
+
+def zero_nonfinite_grads(opt, keys) -> int:
+    """Replace non-finite gradient entries of ``opt[key]`` by 0 (so one bad ray cannot
+    poison Adam); returns how many entries were replaced (arrays and tensors)."""
+    bad = 0
+    for key in keys:
+        g = dr.grad(opt[key])
+        flat = g.array if dr.is_tensor_v(g) else g
+        ok = dr.isfinite(flat)
+        nb = int(dr.count(~dr.all(ok) if dr.size_v(flat) > 1 else ~ok)[0])
+        if nb:
+            bad += nb
+            fixed = dr.select(ok, flat, 0)
+            dr.set_grad(opt[key], type(g)(fixed, g.shape) if dr.is_tensor_v(g) else fixed)
+    return bad
 
 
 def write_log(out_dir: Path, log: list, summary: dict | None = None, indent: int | None = 1) -> None:
