@@ -28,6 +28,8 @@ from comgs_dr.lighting import backends
 from comgs_dr.shading.shade import SAMPLINGS
 from comgs_dr.shading.visibility import KINDS
 from comgs_dr.stages import train_completion
+from comgs_dr.stages.compose import PRESETS as COMPOSE_PRESETS
+from comgs_dr.stages.compose import compose
 from comgs_dr.stages.decompose import MaterialConfig, train_material
 from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light, write_outputs
 from comgs_dr.stages.reconstruct import (
@@ -37,6 +39,8 @@ from comgs_dr.stages.reconstruct import (
     train_radiance,
 )
 from comgs_dr.stages.relight import relight_run
+from comgs_dr.stages.render_comp import VARIANTS as RENDER_VARIANTS
+from comgs_dr.stages.render_comp import render_comp
 from comgs_dr.stages.render_run import render_run
 from comgs_dr.surfels.edit import parse_mask_spec, parse_material_spec
 from comgs_dr.train.run import write_run_info
@@ -105,6 +109,38 @@ def _add_make_dataset(sub) -> None:
     sc.add_argument("--seed", type=int, default=0, metavar="S")
     sc.add_argument("--variant", default="auto", help="Mitsuba variant (default auto)")
     sc.add_argument("--quiet", action="store_true", help="no progress bars")
+    c = kinds.add_parser(
+        "composition", help="a scene, objects and path-traced composites of them (ground truth)",
+        description="scene/ (NeRF-synthetic capture of a textured ground with a wall and a box, "
+                    "no objects), objects/<name>/ (each object alone, as `make-dataset object`), "
+                    "transform.json (placements on the ground) and comp/ (spiral test views: "
+                    "gt/ with the objects really in the scene, empty/ without, mask/). Omitted "
+                    "values use the defaults of comgs_dr.data.composition_dataset."
+                    "CompositionDatasetConfig.")
+    c.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    c.add_argument("--objects", metavar="LIST",
+                   help="comma-separated shared object names (spot, teapot, suzanne) or .obj/.ply "
+                        "paths (default spot,teapot)")
+    c.add_argument("--scene-map", dest="scene_map", metavar="M",
+                   help="HDR map of the scene and composites (shared name or path; default "
+                        "blender_sunrise.exr)")
+    c.add_argument("--object-map", dest="object_map", metavar="M",
+                   help="HDR map of the object captures (default blender_studio.exr)")
+    c.add_argument("--res", type=int, dest="resolution", metavar="R",
+                   help="image side in pixels (default 96)")
+    c.add_argument("--scene-views", type=int, dest="scene_views", metavar="N",
+                   help="scene training views (default 48)")
+    c.add_argument("--object-views", type=int, dest="object_views", metavar="N",
+                   help="training views per object (default 48)")
+    c.add_argument("--test-views", type=int, dest="test_views", metavar="N",
+                   help="test views of the scene, of each object and composites (default 8)")
+    c.add_argument("--spp", type=int, metavar="S", help="samples per pixel of training views "
+                   "(default 64; test views and composites use twice as many)")
+    c.add_argument("--points", type=int, dest="sfm_points", metavar="N",
+                   help="SfM-like points in scene/points3d.ply (default 10000; 0: none)")
+    c.add_argument("--seed", type=int, metavar="S", help="camera/placement/noise seed (default 0)")
+    c.add_argument("--variant", default="auto", help="Mitsuba variant (default auto)")
+    c.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_make_dataset)
 
 
@@ -113,6 +149,8 @@ def _cmd_make_dataset(args) -> int:
         return _make_object(args)
     if args.kind == "scene":
         return _make_scene(args)
+    if args.kind == "composition":
+        return _make_composition(args)
     raise AssertionError(f"unhandled dataset kind {args.kind}")  # argparse restricts KIND
 
 
@@ -146,6 +184,22 @@ def _make_scene(args) -> int:
                             progress=not args.quiet)
     print(f"wrote {s['n_train']} train + {s['n_test']} test views ({s['resolution']}px) and "
           f"{args.points} points to {s['out_dir']} in {s['seconds']:.1f} s [{s['variant']}]")
+    return 0
+
+
+def _make_composition(args) -> int:
+    from comgs_dr.data.composition_dataset import CompositionDatasetConfig, make_composition_dataset
+    overrides = {k: getattr(args, k) for k in
+                 ("objects", "scene_map", "object_map", "resolution", "scene_views", "object_views",
+                  "test_views", "spp", "sfm_points", "seed") if getattr(args, k) is not None}
+    cfg = CompositionDatasetConfig(out_dir=args.out, variant=set_variant(args.variant), **overrides)
+    s = make_composition_dataset(cfg, progress=not args.quiet)
+    sec = s["seconds"]
+    print(f"wrote scene ({s['n_scene_train']} train views), objects {', '.join(s['objects'])} "
+          f"({s['n_object_train']} train views each) and {s['n_test']} composite test views "
+          f"({s['resolution']}px) to {s['out_dir']} in {sec['total']:.1f} s (scene "
+          f"{sec['scene']:.1f} s, objects {sum(sec['objects'].values()):.1f} s, composites "
+          f"{sec['comp']:.1f} s) [{s['variant']}]")
     return 0
 
 
@@ -418,10 +472,121 @@ def _cmd_train_completion(args) -> int:
     return train_completion.run_from_args(args)
 
 
+# ----------------------------------------------------------------------------- compose
+
+def _add_compose(sub) -> None:
+    p = sub.add_parser(
+        "compose", help="edit stage: place objects in a scene, light them, cache occlusion",
+        description="Place step-2 objects in a step-1 scene (transform.json: row-major 4x4 "
+                    "object-to-world 'transform', or location/rotation (Euler XYZ degrees)/"
+                    "scale; similarity transforms only), light each object (--env: one map, "
+                    "an equirect .hdr/.exr in the package's Z-up convention, u = 0.5 - "
+                    "atan2(y, x)/2pi, v = acos(z)/pi, or our octahedral EXR; without --env "
+                    "the lighting is estimated at each object's centre as `comgs "
+                    "estimate-light` does), place shadow-region probes on the scene around "
+                    "every object and trace their occlusion against all objects. Writes "
+                    "COMP_DIR/composition.json, composition.xml, edit.json (timings); moving "
+                    "one object later re-traces only what it touches (COMP_DIR/cache).")
+    p.add_argument("scene_run", metavar="SCENE_RUN", help="`comgs reconstruct` folder of the scene")
+    p.add_argument("--object", action="append", required=True, metavar="NAME=OBJECT_RUN",
+                   help="an object: its name in transform.json and its `comgs decompose` "
+                        "folder (or the reconstruct folder holding material/); repeatable")
+    p.add_argument("--placement", required=True, metavar="transform.json")
+    p.add_argument("--env", metavar="MAP", help="map lighting every object (default: estimate)")
+    p.add_argument("--out", required=True, metavar="COMP_DIR")
+    p.add_argument("--preset", choices=sorted(COMPOSE_PRESETS), default="default",
+                   help="default: 10k shadow probes per object (paper); fast: 2k")
+    p.add_argument("--shadow-probes", type=int, metavar="N", help="shadow probes per object")
+    p.add_argument("--label", choices=("unknown", "indoor", "outdoor"), default="unknown",
+                   help="scene label for the lighting estimation")
+    p.add_argument("--variant", default="auto")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_compose)
+
+
+def _cmd_compose(args) -> int:
+    set_variant(args.variant)
+    objects = {}
+    for spec in args.object:
+        name, sep, run = spec.partition("=")
+        if not sep or not name or not run:
+            raise ValueError(f"--object expects NAME=OBJECT_RUN, got {spec!r}")
+        if name in objects:
+            raise ValueError(f"--object {name!r} given twice")
+        objects[name] = run
+    cfg = COMPOSE_PRESETS[args.preset]
+    if args.shadow_probes is not None:
+        cfg = dataclasses.replace(cfg, shadow=dataclasses.replace(cfg.shadow,
+                                                                  count=args.shadow_probes))
+    estimator = None
+    if args.env is None:
+        scene_ply = str(Path(args.scene_run) / "point_cloud.ply")
+        ecfg = EstimateConfig(label=args.label)
+        backend = backends.load_network_backend()
+        estimator = lambda pos: estimate_light(scene_ply, pos, ecfg, backend)["hdr"]  # noqa: E731
+    s = compose(args.scene_run, objects, args.placement, args.out, env=args.env,
+                estimator=estimator, cfg=cfg, progress=not args.quiet)
+    t = s["timings"]
+    print(f"{'part':<20}{'seconds':>10}")
+    for k in ("lighting", "probe_placement", "occlusion_tracing", "total"):
+        print(f"{k:<20}{t[k]:>10.2f}")
+    pr = s["pairs"]
+    print(f"{s['probes']['shadow']} shadow probes; occlusion pairs traced {len(pr['traced'])}, "
+          f"reused {len(pr['reused'])}, culled {len(pr['culled'])}; wrote {args.out}")
+    return 0
+
+
+def _add_render_comp(sub) -> None:
+    p = sub.add_parser(
+        "render-comp", help="render a composition along NeRF-synthetic cameras",
+        description="Render COMP_DIR (from `comgs compose`) along the cameras of a "
+                    "NeRF-synthetic transforms.json into COMP_DIR/renders/<variant>/ and, with "
+                    "--gt-dir, score against GT_DIR/<basename>.png into "
+                    "COMP_DIR/metrics_<variant>.json (psnr, ssim, frame_seconds, per frame).")
+    p.add_argument("comp_dir", metavar="COMP_DIR")
+    p.add_argument("--cameras", required=True, metavar="transforms.json")
+    p.add_argument("--variant", choices=RENDER_VARIANTS, default="sop",
+                   help="sop (cached shadows), trace (traced per frame), noshadow, paste")
+    p.add_argument("--gt-dir", metavar="DIR", help="ground-truth PNGs named like the frames")
+    p.add_argument("--material", action="append", default=[],
+                   metavar="NAME:albedo=R,G,B,roughness=X,metallic=Y",
+                   help="override an object's material (repeatable)")
+    p.add_argument("--res", type=int, nargs="+", metavar="W [H]",
+                   help="image size (default: the ground truth's, else the camera file's w/h)")
+    p.add_argument("--rays", type=int, metavar="N", help="S_r (default 256)")
+    p.add_argument("--variant-mitsuba", dest="mi_variant", default="auto", metavar="V")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_render_comp)
+
+
+def _cmd_render_comp(args) -> int:
+    set_variant(args.mi_variant)
+    mats = {}
+    for spec in args.material:
+        name, sep, rest = spec.partition(":")
+        if not sep:
+            raise ValueError(f"--material expects NAME:albedo=..., got {spec!r}")
+        parse_material_spec(rest)            # validate now, with a clear error
+        mats[name] = rest
+    res = None
+    if args.res:
+        if len(args.res) > 2:
+            raise ValueError("--res takes W or W H")
+        res = args.res[0] if len(args.res) == 1 else tuple(args.res)
+    s = render_comp(args.comp_dir, args.cameras, args.variant, args.gt_dir, mats, res,
+                    args.rays, progress=not args.quiet)
+    line = f"{s['frames']} frames ({s['variant']}), {s['frame_seconds']:.3f} s/frame"
+    if "psnr" in s:
+        line += f", PSNR {s['psnr']:.2f} dB, SSIM {s['ssim']:.4f}"
+    print(line + f"; renders in {s['renders']}")
+    return 0
+
+
 # ----------------------------------------------------------------------------- entry point
 
 _SUBCOMMANDS = (_add_make_dataset, _add_demo, _add_reconstruct, _add_render, _add_decompose,
-                _add_relight, _add_estimate_light, _add_train_completion)
+                _add_relight, _add_estimate_light, _add_train_completion, _add_compose,
+                _add_render_comp)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -8,11 +8,11 @@ import mitsuba as mi
 
 from comgs_dr.core.variant import is_supported_variant
 from comgs_dr.emitters import octenvmap
-from comgs_dr.integrators import sop_pbr, surfel_gbuffer
+from comgs_dr.integrators import comgs_composite, sop_pbr, surfel_gbuffer
 from comgs_dr.surfels import shape
 
 SHAPES = ("surfels",)
-INTEGRATORS = ("surfel_gbuffer", "sop_pbr")
+INTEGRATORS = ("surfel_gbuffer", "sop_pbr", "comgs_composite")
 EMITTERS = ("octenvmap",)
 _registered: set[str] = set()
 _callback_installed = False
@@ -45,6 +45,7 @@ def register_all() -> None:
     octenvmap.register()
     surfel_gbuffer.register()
     sop_pbr.register()
+    comgs_composite.register()
     _registered.add(name)
 
 

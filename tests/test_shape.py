@@ -77,12 +77,27 @@ def test_update_moves_geometry_and_changes_count(rng):
     assert "has 75 entries but 'opacity_logit' has 10" in error_chain_text(ei.value)
 
 
-def test_to_world_is_refused(tmp_path, rng):
+def test_to_world_places_surfels(tmp_path, rng):
+    """A similarity to_world places the surfels as transform_surfels does; a non-uniform
+    scale is refused with the shape named."""
+    from comgs_dr.core.similarity import Similarity, euler_xyz_deg
+    from comgs_dr.surfels.transform import transform_surfels
     ply = tmp_path / "o.ply"
-    save_ply(random_surfels(rng, n=5), str(ply))
+    p = random_surfels(rng, n=5)
+    save_ply(p, str(ply))
+    m = Similarity(2.0, euler_xyz_deg(10, 20, 30), np.array([1.0, -2.0, 0.5])).matrix
+    sh = mi.load_dict({"type": "surfels", "filename": str(ply),
+                       "to_world": mi.ScalarTransform4f(m.tolist())})
+    from comgs_dr.surfels import load_ply
+    want = transform_surfels(load_ply(str(ply)), Similarity(2.0, m[:3, :3] / 2, m[:3, 3]))
+    np.testing.assert_allclose(np.asarray(sh.params.means), np.asarray(want.means), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(sh.params.log_scales),
+                               np.asarray(want.log_scales), atol=1e-5)
+    bad = np.diag([1.0, 2.0, 1.0, 1.0])
     with pytest.raises(Exception) as ei:
-        mi.load_dict({"type": "surfels", "filename": str(ply), "to_world": mi.ScalarTransform4f()})
-    assert "to_world" in error_chain_text(ei.value)
+        mi.load_dict({"type": "surfels", "id": "cow", "filename": str(ply),
+                      "to_world": mi.ScalarTransform4f(bad.tolist())})
+    assert "cow" in error_chain_text(ei.value) and "scale" in error_chain_text(ei.value)
 
 
 def _degenerate_params(rng):

@@ -106,7 +106,7 @@ def _point_offsets(n_pts: int, seed: int, dims: int):
     return [rng.next_float32() for _ in range(dims)]
 
 
-def _sample_points(n_pts: int, s: int, seed: int, decorrelate: bool, blocks=None):
+def sample_points(n_pts: int, s: int, seed: int, decorrelate: bool, blocks=None):
     """(point id [N*S], sample id [N*S], u [N*S] Point2f, u_lobe [N*S]) for S directions per
     point: one Hammersley set per block of ``blocks`` (sizes summing to S; MIS uses one
     block per strategy), rotated per point (``decorrelate``) or per call."""
@@ -159,7 +159,7 @@ def shade(pts: ShadingPoints, env, visibility, cfg: ShadingConfig, seed: int = 0
     n_env = s // 2 if cfg.sampling == "mis" else 0      # MIS: the first S//2 from the map
     if cfg.decorrelate or cfg.sampling == "mis":
         blocks = [n_env, s - n_env] if n_env else [s]
-        pid, sid, u, u_lobe = _sample_points(n_pts, s, seed, cfg.decorrelate, blocks)
+        pid, sid, u, u_lobe = sample_points(n_pts, s, seed, cfg.decorrelate, blocks)
     else:       # the paper's shared rotated Hammersley set
         u_np = direction_set(s, seed).astype(np.float32)                   # [S, 2]
         idx = dr.arange(mi.UInt32, n_pts * s)

@@ -128,6 +128,21 @@ def farthest_points(points: np.ndarray, count: int, seed: int = 0) -> np.ndarray
     return np.asarray(idx, np.int64)
 
 
+def probe_spacing(pts: np.ndarray, size: float) -> float:
+    """Median nearest-neighbour distance of FPS samples (≈ the covering radius); ``size``
+    for a single point."""
+    if len(pts) < 2:
+        return float(size)
+    dist, _ = cKDTree(pts).query(pts, k=2)
+    return float(np.median(dist[:, 1]))
+
+
+def query_radius(pts: np.ndarray, neighbours: float, size: float) -> float:
+    """Query radius with ~``neighbours`` probes inside: spacing·sqrt(neighbours/π)·√2."""
+    spacing = probe_spacing(pts, size)
+    return max(spacing * np.sqrt(neighbours / np.pi) * np.sqrt(2.0), 1e-6 * size)
+
+
 def place_probes(params, cameras, cfg: PlacementConfig = PlacementConfig(),
                  object_size: float | None = None, seed: int = 0) -> ProbeSet:
     """Probe positions/normals for a reconstructed object (textures not yet baked).
@@ -154,13 +169,8 @@ def place_probes(params, cameras, cfg: PlacementConfig = PlacementConfig(),
     size = float(object_size) if object_size else float(
         np.linalg.norm(fused.points.max(0) - fused.points.min(0)))
     positions = pts + cfg.offset_frac * size * nrm
-    # spacing: the smallest distance between chosen samples ≈ FPS covering radius
-    if len(pts) > 1:
-        dist, _ = cKDTree(pts).query(pts, k=2)
-        spacing = float(np.median(dist[:, 1]))
-    else:
-        spacing = size
-    radius = max(spacing * np.sqrt(cfg.neighbours / np.pi) * np.sqrt(2.0), 1e-6 * size)
+    spacing = probe_spacing(pts, size)
+    radius = query_radius(pts, cfg.neighbours, size)
     return ProbeSet(positions=positions, normals=nrm, res=cfg.res, radius=radius,
                     meta={"placement": {**cfg.__dict__, "object_size": size,
                                         "fused_points": int(len(fused.points)),

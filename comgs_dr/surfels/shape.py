@@ -19,11 +19,14 @@ import os
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
+from comgs_dr.core.similarity import from_matrix
 from comgs_dr.core.variant import is_kind, variant_class
 from comgs_dr.surfels import kernel as K
 from comgs_dr.surfels.io import load_ply
 from comgs_dr.surfels.params import SurfelParams, field_names
+from comgs_dr.surfels.transform import transform_surfels
 
 
 def is_surfel_shape(obj) -> bool:
@@ -50,7 +53,9 @@ class SurfelShapeBase:
          Relative paths are resolved against Mitsuba's file resolver.
      * - to_world
        - |transform|
-       - Not supported (surfels are stored in world space); refused if given.
+       - Object-to-world similarity (rotation, uniform scale, translation) applied to the
+         surfels when they are loaded (positions, frames, scales, SH bands rotated exactly);
+         a non-uniform scale or shear is refused. Exposed parameters are then in world space.
 
     Exposed parameters (``mi.traverse``), all differentiable, raw storage as in
     :class:`~comgs_dr.surfels.params.SurfelParams`: ``means``, ``quats``,
@@ -66,9 +71,6 @@ class SurfelShapeBase:
     """
 
     def __init__(self, props: mi.Properties, params: SurfelParams | None = None):
-        if "to_world" in props:
-            raise ValueError("surfels: 'to_world' is not supported; transform the PLY "
-                             "(comgs_dr.surfels.io) before loading")
         if params is None:
             if "filename" not in props:
                 raise ValueError("surfels: give <string name=\"filename\"> (a surfel PLY) "
@@ -78,6 +80,9 @@ class SurfelShapeBase:
             if not os.path.exists(resolved):
                 raise FileNotFoundError(f"surfels: filename '{fname}' not found")
             params = load_ply(resolved)
+        if "to_world" in props:
+            m = np.array(props["to_world"].matrix, np.float64).reshape(4, 4)
+            params = transform_surfels(params, from_matrix(m, props.id() or "surfels"))
         n = params.count
         if n < 1:
             raise ValueError("surfels: at least one surfel is required")

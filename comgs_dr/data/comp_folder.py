@@ -1,0 +1,148 @@
+"""A composition folder (``comgs compose`` → ``comgs render-comp``): its manifest, the
+Mitsuba scene it describes, and NeRF-synthetic camera files.
+
+``COMP_DIR/composition.json``::
+
+    {"version": 1, "scene": {"run", "ply", "colour_space"},
+     "world_from_source": 4×4 (the scene dataset's frame → the reconstruction's),
+     "objects": {name: {"run", "ply", "placement": 4×4 object→world (reconstruction frame),
+                        "envmap": "env/<name>.exr", "probes": "probes/<name>.npz",
+                        "bounds": [lo, hi]}},
+     "shadow_probes": "shadow_probes.npz", "config": {...}}
+
+Paths inside the folder are relative to it; run paths are absolute. ``composition.xml`` is
+the same scene as Mitsuba XML (``comgs_composite`` + surfels shapes), for use outside the CLI.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import mitsuba as mi
+import numpy as np
+
+from comgs_dr.core.cameras import from_matrix
+
+MANIFEST = "composition.json"
+FORMAT_VERSION = 1
+GL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])     # OpenGL camera axes → Mitsuba's
+
+
+def read_manifest(comp_dir) -> dict:
+    p = Path(comp_dir) / MANIFEST
+    if not p.is_file():
+        raise FileNotFoundError(f"{p} not found: is {comp_dir} a `comgs compose` folder?")
+    m = json.loads(p.read_text())
+    if m.get("version", 0) > FORMAT_VERSION:
+        raise ValueError(f"{p}: format version {m['version']}, this comgs_dr reads "
+                         f"≤ {FORMAT_VERSION}")
+    return m
+
+
+def integrator_props(comp_dir, manifest: dict, variant: str = "sop",
+                     materials: dict | None = None, **extra) -> dict:
+    """Properties of the ``comgs_composite`` integrator for a composition folder."""
+    root = Path(comp_dir).resolve()
+    props = {"type": "comgs_composite", "variant": variant, "scene_shape": "scene",
+             "colour_space": manifest["scene"].get("colour_space", "srgb")}
+    if variant == "sop":
+        props["shadow_probes"] = str(root / manifest["shadow_probes"])
+    for name, o in manifest["objects"].items():
+        props[f"envmap_{name}"] = str(root / o["envmap"])
+        if variant != "paste":
+            props[f"probes_{name}"] = str(root / o["probes"])
+    for name, spec in (materials or {}).items():
+        if name not in manifest["objects"]:
+            raise ValueError(f"material override for {name!r}: no such object "
+                             f"(objects: {', '.join(manifest['objects'])})")
+        props[f"material_{name}"] = spec
+    props.update(extra)
+    return props
+
+
+def shape_dicts(manifest: dict) -> dict:
+    """{id: surfels shape dict} of the scene and the placed objects."""
+    out = {"scene": {"type": "surfels", "filename": manifest["scene"]["ply"]}}
+    for name, o in manifest["objects"].items():
+        out[name] = {"type": "surfels", "filename": o["ply"],
+                     "to_world": mi.ScalarTransform4f(np.asarray(o["placement"]).tolist())}
+    return out
+
+
+def write_xml(path, comp_dir, manifest: dict, variant: str = "sop") -> Path:
+    """``composition.xml``: the composition as a Mitsuba scene (one example sensor)."""
+    props = integrator_props(comp_dir, manifest, variant)
+    lines = ['<scene version="3.0.0">', '    <integrator type="comgs_composite">']
+    for k, v in props.items():
+        if k != "type":
+            lines.append(f'        <string name="{k}" value={quoteattr(str(v))}/>')
+    lines.append("    </integrator>")
+    lines.append(f'    <shape type="surfels" id="scene"><string name="filename" '
+                 f'value={quoteattr(manifest["scene"]["ply"])}/></shape>')
+    for name, o in manifest["objects"].items():
+        m = " ".join(f"{v:.9g}" for v in np.asarray(o["placement"]).ravel())
+        lines.append(f'    <shape type="surfels" id={quoteattr(name)}>')
+        lines.append(f'        <string name="filename" value={quoteattr(o["ply"])}/>')
+        lines.append(f'        <transform name="to_world"><matrix value="{m}"/></transform>')
+        lines.append("    </shape>")
+    c = np.mean([np.add(*o["bounds"]) / 2 for o in manifest["objects"].values()], 0) \
+        if manifest["objects"] else np.zeros(3)
+    eye = c + np.array([3.0, -3.0, 2.0]) * max(
+        [np.linalg.norm(np.subtract(o["bounds"][1], o["bounds"][0])) for o in
+         manifest["objects"].values()] or [1.0])
+    lines += ['    <sensor type="perspective">', '        <float name="fov" value="40"/>',
+              '        <transform name="to_world"><lookat origin="{}" target="{}" up="0, 0, 1"/>'
+              '</transform>'.format(", ".join(f"{v:.6g}" for v in eye),
+                                    ", ".join(f"{v:.6g}" for v in c)),
+              '        <film type="hdrfilm"><integer name="width" value="256"/>'
+              '<integer name="height" value="256"/><rfilter type="box"/></film>',
+              "    </sensor>", "</scene>"]
+    p = Path(path)
+    p.write_text("\n".join(lines) + "\n")
+    return p
+
+
+def read_cameras(path, world_from_source=None, res=None) -> list[dict]:
+    """Frames of a NeRF-synthetic ``transforms*.json``: [{'name', 'to_world' (Mitsuba,
+    reconstruction frame), 'fov_x_deg', 'width', 'height'}]. Image size: ``res`` (int or
+    (w, h)), else the file's ``w``/``h``; ValueError when neither is known."""
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"camera file not found: {p}")
+    try:
+        d = json.loads(p.read_text())
+        fov = float(np.degrees(float(d["camera_angle_x"])))
+        frames = d["frames"]
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{p}: not a NeRF-synthetic camera file (camera_angle_x, frames[]): "
+                         f"{e}") from e
+    if not frames:
+        raise ValueError(f"{p}: no frames")
+    W = np.eye(4) if world_from_source is None else np.asarray(world_from_source, np.float64)
+    out = []
+    for i, f in enumerate(frames):
+        try:
+            m = np.asarray(f["transform_matrix"], np.float64).reshape(4, 4)
+            name = Path(str(f["file_path"])).name
+        except (KeyError, ValueError) as e:
+            raise ValueError(f"{p}: frame {i} needs file_path and a 4×4 transform_matrix") from e
+        if not np.all(np.isfinite(m)):
+            raise ValueError(f"{p}: frame {i} ({name}) has a non-finite transform_matrix")
+        if res is not None:
+            w, h = (res, res) if isinstance(res, int) else res
+        elif "w" in d and "h" in d:
+            w, h = int(d["w"]), int(d["h"])
+        else:
+            w = h = None
+        out.append({"name": name, "to_world": W @ m @ GL_TO_MITSUBA, "fov_x_deg": fov,
+                    "width": w, "height": h})
+    return out
+
+
+def sensor_dict(cam: dict, pixel_format: str = "rgb") -> dict:
+    if cam["width"] is None:
+        raise ValueError(f"camera {cam['name']}: image size unknown (give --res or --gt-dir)")
+    s = from_matrix(cam["to_world"], cam["fov_x_deg"], (cam["width"], cam["height"]))
+    s["film"]["pixel_format"] = pixel_format
+    return s

@@ -1,0 +1,504 @@
+"""Path-traced ground truth for object-into-scene composition (``comgs make-dataset composition``).
+
+A scene (a large photo-textured ground, a brick wall and a box; principled two-sided BSDFs)
+is lit by the scene map; each object is captured alone under a different map; then the
+objects are placed ON the ground, close enough for one to shadow the other, and the real
+composite is path-traced (shadows, inter-reflections) beside the same view without objects::
+
+    scene/             NeRF-synthetic capture of the scene WITHOUT the objects: opaque RGB PNGs
+                       (the ground fills the frames), transforms_{train,test}.json, points3d.ply
+    objects/<name>/    the object alone, transparent background (``make_object_dataset`` format)
+    transform.json     placements {name: {"transform": 16 floats}} (``core.similarity``):
+                       object capture world (normalised frame) -> scene world
+    comp/transforms_test.json   spiral test cameras around the placement centre
+    comp/{gt,empty}/r_<i>.png   composite with the objects / the same view without them
+                       (opaque 8-bit sRGB; .exr beside: linear HDR RGBA, alpha = 1)
+    comp/mask/r_<i>.png         8-bit coverage of the objects in the composite (visible part)
+    assets/*.png       the ground and wall textures; composition.json: metadata
+
+World: Z-up, ground top at z = 0. Env maps use ``synthetic.ENVMAP_TO_WORLD`` (Blender's Z-up
+equirect), in the scene and in the object captures. A placed mesh's Mitsuba ``to_world`` is
+``placement @ object_to_world`` (the latter from ``objects/<name>/meta.json``). The gt and
+empty frames of one view share their random seed (correlated noise: their difference is the
+objects' effect).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from comgs_dr.core.colorspace import srgb_encode
+from comgs_dr.core.similarity import Similarity, write_placements
+from comgs_dr.core.variant import package_version
+from comgs_dr.data import synthetic_io as sio
+from comgs_dr.data.images import write_png8
+from comgs_dr.data.sfm_points import sample_visible_points, write_points_ply
+from comgs_dr.data.synthetic import (
+    ENVMAP_TO_WORLD,
+    GL_FROM_MITSUBA,
+    ObjectDatasetConfig,
+    _bar,
+    _direction,
+    _frame_json,
+    look_at,
+    make_object_dataset,
+    object_transform,
+    shared_data_dir,
+    test_cameras,
+    train_cameras,
+)
+from comgs_dr.lighting.envmap import load_envmap
+
+GENERATOR_VERSION = "comgs_dr.data.composition_dataset/1"
+#: Named objects of the shared data: mesh (relative to the data dir) and known material.
+SHARED_OBJECTS = {
+    "spot": {"mesh": "meshes/spot_triangulated.obj", "texture": "auto",
+             "base_color": (0.6, 0.6, 0.6), "roughness": 0.5, "metallic": 0.0},
+    "teapot": {"mesh": "meshes/teapot.obj", "texture": None,
+               "base_color": (0.8, 0.3, 0.08), "roughness": 0.25, "metallic": 0.0},
+    "suzanne": {"mesh": "meshes/suzanne.obj", "texture": None,
+                "base_color": (0.9, 0.7, 0.35), "roughness": 0.3, "metallic": 1.0},
+}
+PATH_OBJECT = {"texture": "auto", "base_color": (0.6, 0.6, 0.6), "roughness": 0.5, "metallic": 0.0}
+GROUND_HALF = 25.0           # ground: a 50 x 50 square, top at z = 0
+GROUND_TILE = 2.0            # one texture tile per 2 x 2 units
+MESH_SUFFIXES = (".obj", ".ply")
+
+
+@dataclass
+class CompositionDatasetConfig:
+    """Settings of :func:`make_composition_dataset` (defaults: a few minutes on 2 CPU cores).
+
+    ``objects``: names of :data:`SHARED_OBJECTS` or .obj/.ply paths (Y-up files). Maps: names
+    of shared HDRIs (``hdri/<name>``) or paths. ``test_views`` sizes the test split of the
+    scene, of each object and of ``comp/``. Training views use ``spp``, test views and
+    composites ``spp_test`` (None: 2 * spp). ``object_scale``: world half size of each placed
+    object's largest side; ``spacing``: centre distance of neighbours in object sizes.
+    """
+    out_dir: str | Path = "composition"
+    objects: tuple[str, ...] = ("spot", "teapot")
+    scene_map: str | Path = "blender_sunrise.exr"
+    object_map: str | Path = "blender_studio.exr"
+    resolution: int = 96
+    scene_views: int = 48
+    object_views: int = 48
+    test_views: int = 8
+    spp: int = 64
+    spp_test: int | None = None
+    max_depth: int = 8
+    seed: int = 0
+    fov_deg: float = 40.0
+    object_scale: float = 0.5
+    spacing: float = 1.5
+    sfm_points: int = 10000          # 0: no scene/points3d.ply
+    scene_envmap_scale: float = 1.0
+    object_envmap_scale: float = 1.0
+    variant: str | None = None       # None: keep the active JIT variant
+
+    def __post_init__(self):
+        if isinstance(self.objects, str):
+            self.objects = tuple(o.strip() for o in self.objects.split(",") if o.strip())
+        self.objects = tuple(str(o) for o in self.objects)
+        if not self.objects:
+            raise ValueError("CompositionDatasetConfig.objects must name >= 1 object")
+        for o in self.objects:
+            if o not in SHARED_OBJECTS and Path(o).suffix.lower() not in MESH_SUFFIXES:
+                raise ValueError(f"unknown object {o!r}: use one of {', '.join(SHARED_OBJECTS)} "
+                                 "or a path to an .obj/.ply mesh")
+        for name in ("scene_views", "object_views", "test_views", "spp", "max_depth"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"CompositionDatasetConfig.{name} must be >= 1 "
+                                 f"(got {getattr(self, name)})")
+        if int(self.resolution) < 8:
+            raise ValueError(f"CompositionDatasetConfig.resolution must be >= 8 (got {self.resolution})")
+        if self.spp_test is not None and int(self.spp_test) < 1:
+            raise ValueError(f"CompositionDatasetConfig.spp_test must be >= 1 (got {self.spp_test})")
+        if int(self.sfm_points) < 0:
+            raise ValueError(f"CompositionDatasetConfig.sfm_points must be >= 0 (got {self.sfm_points})")
+        for name in ("object_scale", "spacing", "scene_envmap_scale", "object_envmap_scale"):
+            if not float(getattr(self, name)) > 0:
+                raise ValueError(f"CompositionDatasetConfig.{name} must be > 0 "
+                                 f"(got {getattr(self, name)})")
+        if not 1.0 < float(self.fov_deg) < 120.0:
+            raise ValueError(f"CompositionDatasetConfig.fov_deg must be in (1, 120) (got {self.fov_deg})")
+
+
+# ----------------------------------------------------------------------------- inputs
+
+def resolve_map(m) -> Path:
+    """A shared HDRI name (``blender_sunrise.exr``) or an existing path; FileNotFoundError."""
+    p = Path(m)
+    if p.is_file():
+        return p
+    q = shared_data_dir() / "hdri" / str(m)
+    if q.is_file():
+        return q
+    avail = sorted(x.name for x in (shared_data_dir() / "hdri").glob("*")) \
+        if (shared_data_dir() / "hdri").is_dir() else []
+    raise FileNotFoundError(f"environment map not found: {m!r} (neither a file nor a shared map; "
+                            f"shared maps: {', '.join(avail) or 'none found'})")
+
+
+def resolve_objects(names) -> dict[str, dict]:
+    """{name: {mesh: Path, texture, base_color, roughness, metallic}} for names or paths."""
+    out = {}
+    for o in names:
+        if o in SHARED_OBJECTS:
+            spec = dict(SHARED_OBJECTS[o], mesh=shared_data_dir() / SHARED_OBJECTS[o]["mesh"])
+            name = o
+        else:
+            spec, name = dict(PATH_OBJECT, mesh=Path(o)), Path(o).stem
+        if not spec["mesh"].is_file():
+            raise FileNotFoundError(f"mesh of object {o!r} not found: {spec['mesh']}")
+        if name in out:
+            raise ValueError(f"two objects are named {name!r}; object names must be distinct")
+        out[name] = spec
+    return out
+
+
+def sun_direction(bitmap) -> np.ndarray:
+    """[3] unit world direction of the brightest texel (Z-up equirect, ENVMAP_TO_WORLD)."""
+    a = np.array(bitmap, np.float32)[..., :3]                      # [H, W, 3]
+    h, w = a.shape[:2]
+    i, j = np.unravel_index(np.argmax(a @ np.array([0.2126, 0.7152, 0.0722])), (h, w))
+    th, phi = np.pi * (i + 0.5) / h, 2 * np.pi * (0.5 - (j + 0.5) / w)
+    return np.array([np.sin(th) * np.cos(phi), np.sin(th) * np.sin(phi), np.cos(th)])
+
+
+def write_textures(folder: Path) -> dict[str, Path]:
+    """Photo textures of scikit-image as sRGB PNGs: tinted gravel (ground), brick (wall)."""
+    from skimage import data
+    folder.mkdir(parents=True, exist_ok=True)
+    out = {}
+    for key, img, tint in (("ground", data.gravel(), (0.85, 0.75, 0.6)),
+                           ("wall", data.brick(), (0.85, 0.5, 0.4))):
+        g = img.astype(np.float32)[..., None] / 255.0                    # [H, W, 1]
+        out[key] = folder / f"{key}.png"
+        write_png8(out[key], (0.25 + 0.7 * g) * np.array(tint))
+    return out
+
+
+# ----------------------------------------------------------------------------- layout
+
+def rot_z(deg: float) -> np.ndarray:
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def scene_layout(sun: np.ndarray) -> dict:
+    """Props around the origin from the sun azimuth: a wall 2.6 units on the side away from
+    the sun (lit, it reflects onto the objects), a box to the side. Returns their Mitsuba
+    cube transforms, sizes and the sun azimuth (degrees)."""
+    az = float(np.degrees(np.arctan2(sun[1], sun[0]))) if np.hypot(*sun[:2]) > 1e-6 else 0.0
+    u = _direction(0.0, az)                                        # [3] towards the sun
+    v = np.cross([0.0, 0.0, 1.0], u)
+    props = {"wall": {"centre": -2.6 * u, "half": (0.1, 2.5, 0.7), "yaw": az},
+             "box": {"centre": 2.4 * v, "half": (0.35, 0.35, 0.35), "yaw": az + 25.0}}
+    for p in props.values():
+        m = np.eye(4)
+        m[:3, :3] = rot_z(p["yaw"]) @ np.diag(p["half"])
+        m[:3, 3] = p["centre"] + [0.0, 0.0, p["half"][2]]          # resting on the ground
+        p["to_world"] = m
+    return {"sun_azimuth_deg": az, "props": props}
+
+
+def place_objects(norm_verts: dict[str, np.ndarray], sun_az_deg: float, scale: float,
+                  spacing: float, rng: np.random.Generator) -> dict[str, Similarity]:
+    """Similarities capture world -> scene world: uniform ``scale``, a random rotation about Z,
+    objects on a line 10 deg off the sun azimuth (the first nearest the sun, so it shadows
+    the next), ``spacing * 2 * scale`` apart, each lowest point on the ground (z = 0).
+    ``norm_verts``: {name: [N, 3] vertices in the capture (normalised) frame}."""
+    u = _direction(0.0, sun_az_deg + 10.0)
+    n, step = len(norm_verts), spacing * 2.0 * scale
+    out, radii = {}, []
+    for k, (name, v) in enumerate(norm_verts.items()):
+        rot = rot_z(float(rng.uniform(0.0, 360.0)))
+        t = ((n - 1) / 2.0 - k) * step * u
+        t[2] = -scale * v[:, 2].min()
+        out[name] = Similarity(float(scale), rot, t)
+        radii.append(scale * np.linalg.norm(v[:, :2], axis=1).max())
+    for k in range(n - 1):
+        if radii[k] + radii[k + 1] > step:
+            raise ValueError(f"spacing {spacing} is too small: objects {k} and {k + 1} may "
+                             f"intersect (need >= {(radii[k] + radii[k + 1]) / (2 * scale):.3f})")
+    return out
+
+
+# ----------------------------------------------------------------------------- rendering
+
+def _material(base, roughness: float, metallic: float = 0.0) -> dict:
+    return {"type": "twosided", "material": {"type": "principled", "base_color": base,
+                                             "roughness": roughness, "metallic": metallic}}
+
+
+def _tex(path: Path, repeat=(1.0, 1.0)) -> dict:
+    return {"type": "bitmap", "filename": str(path), "to_uv": mi.ScalarTransform3f().scale(list(repeat))}
+
+
+def scene_dict(cfg, env_bitmap, textures: dict, layout: dict, objects: dict | None = None) -> dict:
+    """Mitsuba scene: path tracer with the env map visible, ground, props, ``objects``
+    ({name: sio.SceneSpec with the placed to_world}), one movable sensor."""
+    T = mi.ScalarTransform4f
+    rep = GROUND_HALF * 2 / GROUND_TILE
+    props = layout["props"]
+    d = {"type": "scene",
+         "integrator": {"type": "path", "max_depth": int(cfg.max_depth), "hide_emitters": False},
+         "env": {"type": "envmap", "bitmap": env_bitmap, "scale": float(cfg.scene_envmap_scale),
+                 "to_world": T(ENVMAP_TO_WORLD.tolist())},
+         "ground": {"type": "rectangle", "to_world": T().scale([GROUND_HALF, GROUND_HALF, 1.0]),
+                    "bsdf": _material(_tex(textures["ground"], (rep, rep)), 0.8)},
+         "wall": {"type": "cube", "to_world": T(props["wall"]["to_world"].tolist()),
+                  "bsdf": _material(_tex(textures["wall"], (3.0, 1.0)), 0.7)},
+         "box": {"type": "cube", "to_world": T(props["box"]["to_world"].tolist()),
+                 "bsdf": _material({"type": "rgb", "value": [0.25, 0.45, 0.3]}, 0.4)},
+         "sensor": {"type": "perspective", "fov": float(cfg.fov_deg), "fov_axis": "x",
+                    "film": {"type": "hdrfilm", "width": int(cfg.resolution),
+                             "height": int(cfg.resolution), "pixel_format": "rgba",
+                             "rfilter": {"type": "box"}},
+                    "sampler": {"type": "independent", "sample_count": 1}}}
+    for name, spec in (objects or {}).items():
+        d[f"object_{name}"] = sio.scene_dict(spec, None)["object"]   # same mesh + BSDF as the capture
+    return d
+
+
+class SceneRenderer(sio.Renderer):
+    """:class:`synthetic_io.Renderer` over any scene dict (radiance + object coverage)."""
+
+    def __init__(self, scene: dict):           # no AOV integrator / env swapping needed
+        self.scene = mi.load_dict(scene)
+        self.sensor = self.scene.sensors()[0]
+        self._params = mi.traverse(self.sensor)
+
+    def coverage(self, to_world, prefix: str = "object_", ss: int = 4) -> np.ndarray:
+        """[H, W] fraction of ss x ss sub-pixel rays whose first hit is a shape ``prefix*``."""
+        self._place(to_world)
+        shapes = [s for s in self.scene.shapes() if s.id().startswith(prefix)]
+        w, h = self.sensor.film().crop_size()
+        iy, ix, sy, sx = np.meshgrid(np.arange(h), np.arange(w), np.arange(ss), np.arange(ss),
+                                     indexing="ij")
+        pos = mi.Point2f(((ix + (sx + 0.5) / ss) / w).ravel(), ((iy + (sy + 0.5) / ss) / h).ravel())
+        ray, _ = self.sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
+        si = self.scene.ray_intersect(ray)
+        hit = mi.Bool(False)
+        for s in shapes:
+            hit |= si.shape == mi.ShapePtr(s)
+        hit = np.array(dr.select(hit, 1.0, 0.0), np.float32)
+        return hit.reshape(h, w, ss * ss).mean(-1)
+
+
+def write_opaque(stem: Path, rgba: np.ndarray, exr: bool = False) -> None:
+    """Opaque 8-bit sRGB PNG of linear radiance (clipped to [0, 1]); ``exr``: linear RGBA too."""
+    write_png8(stem.with_suffix(".png"), srgb_encode(np.clip(rgba[..., :3], 0.0, 1.0)))
+    if exr:
+        sio.write_exr(stem.with_suffix(".exr"), rgba)
+
+
+def spiral_cameras(n: int, centre, radius: float, elevation_deg=(30.0, 60.0),
+                   turns: float = 1.0, azimuth0_deg: float = 0.0) -> list[dict]:
+    """``n`` cameras on a spiral around ``centre``: elevation rising linearly, ``turns``
+    full turns in azimuth, all looking at ``centre`` (Z up)."""
+    out = []
+    for i in range(n):
+        f = i / max(n - 1, 1)
+        e = elevation_deg[0] + f * (elevation_deg[1] - elevation_deg[0])
+        a = azimuth0_deg + 360.0 * turns * i / n
+        m = look_at(np.asarray(centre) + radius * _direction(e, a), centre)
+        out.append({"elevation_deg": float(e), "azimuth_deg": float(a % 360.0),
+                    "to_world_mitsuba": m, "transform_matrix": m @ GL_FROM_MITSUBA})
+    return out
+
+
+# ----------------------------------------------------------------------------- driver
+
+def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = True) -> dict:
+    """Render the composition dataset into ``cfg.out_dir`` (see the module docstring).
+
+    Returns a summary (out_dir, counts, resolution, seconds per part, variant). Raises
+    FileNotFoundError for missing maps/meshes, ValueError for invalid settings.
+    """
+    t0 = time.perf_counter()
+    cfg = dataclasses.replace(cfg)                       # re-validates
+    scene_map, object_map = resolve_map(cfg.scene_map), resolve_map(cfg.object_map)
+    objects = resolve_objects(cfg.objects)
+    variant = sio.activate_variant(cfg.variant)
+    env = load_envmap(scene_map)
+    load_envmap(object_map)                              # validate before rendering
+    out = Path(cfg.out_dir)
+    spp_test = int(cfg.spp_test or 2 * cfg.spp)
+    rng = np.random.default_rng(cfg.seed)
+
+    sun = sun_direction(env)
+    layout = scene_layout(sun)
+    norm, raw = {}, {}
+    for name, o in objects.items():
+        raw[name] = sio.load_mesh(o["mesh"])["vertices"]                      # [N, 3]
+        o["object_to_world"], _ = object_transform(raw[name], "y", 1.0)
+        m = o["object_to_world"]
+        norm[name] = raw[name] @ m[:3, :3].T + m[:3, 3]                       # [N, 3]
+    placements = place_objects(norm, layout["sun_azimuth_deg"], cfg.object_scale, cfg.spacing, rng)
+    textures = write_textures(out / "assets")
+    seconds = {}
+
+    def seed(i: int, kind: int) -> int:   # kind 0 scene train, 1 scene test, 2 composite
+        return (int(cfg.seed) * 1_000_003 + 256 * i + kind) % 2**32
+
+    # 1. the scene without objects
+    t = time.perf_counter()
+    centres = np.array([p.translation for p in placements.values()])            # [K, 3]
+    group_r = float(np.linalg.norm(centres[:, :2], axis=1).max()) + np.sqrt(2) * cfg.object_scale
+    comp_radius = 1.1 * group_r / np.sin(np.radians(cfg.fov_deg) / 2)
+    scene_radius = 1.25 * comp_radius
+    cams = {"train": train_cameras(cfg.scene_views, scene_radius, rng, (30.0, 70.0)),
+            "test": test_cameras(cfg.test_views, scene_radius, (35.0, 55.0))}
+    rend = SceneRenderer(scene_dict(cfg, env, textures, layout))
+    images = []
+    for split, spp in (("train", cfg.spp), ("test", spp_test)):
+        (out / "scene" / split).mkdir(parents=True, exist_ok=True)
+        for i, cam in enumerate(_bar(cams[split], f"scene {split}", progress)):
+            rgba = rend.radiance(cam["to_world_mitsuba"], spp, seed(i, split == "test"))
+            images += [rgba] if split == "train" else []
+            cam["file_path"] = f"./{split}/r_{i}"
+            write_opaque(out / "scene" / split / f"r_{i}", rgba)
+    if cfg.sfm_points:
+        pts, cols = sample_visible_points(rend.scene, cams["train"], images, cfg.fov_deg,
+                                          int(cfg.sfm_points), np.random.default_rng(cfg.seed + 17),
+                                          radius=scene_radius)
+        write_points_ply(out / "scene" / "points3d.ply", pts, cols)
+    _write_transforms(out / "scene", cfg, cams)
+    seconds["scene"] = time.perf_counter() - t
+
+    # 2. each object alone under the object map
+    seconds["objects"] = {}
+    for k, (name, o) in enumerate(objects.items()):
+        s = make_object_dataset(ObjectDatasetConfig(
+            mesh=o["mesh"], envmap=object_map, out_dir=out / "objects" / name,
+            n_train=cfg.object_views, n_test=cfg.test_views, resolution=cfg.resolution,
+            spp=cfg.spp, spp_test=spp_test, max_depth=cfg.max_depth, relight_envmaps=(),
+            envmap_scale=cfg.object_envmap_scale, seed=cfg.seed + 1 + k, fov_deg=cfg.fov_deg,
+            up_axis="y", half_extent=1.0, texture=o["texture"], base_color=o["base_color"],
+            roughness=o["roughness"], metallic=o["metallic"]), progress=progress)
+        meta = json.loads((out / "objects" / name / "meta.json").read_text())
+        assert np.allclose(meta["object"]["object_to_world"], o["object_to_world"])
+        o["texture"] = meta["texture"]
+        seconds["objects"][name] = s["seconds"]
+    write_placements(out / "transform.json", placements)
+
+    # 3. composites: the same scene with the placed objects, and without
+    t = time.perf_counter()
+    specs = {name: sio.SceneSpec(
+        mesh=o["mesh"], object_to_world=placements[name].matrix @ o["object_to_world"],
+        texture=Path(o["texture"]) if o["texture"] else None, base_color=o["base_color"],
+        roughness=o["roughness"], metallic=o["metallic"], resolution=cfg.resolution,
+        fov_deg=cfg.fov_deg, max_depth=cfg.max_depth, envmap_to_world=ENVMAP_TO_WORLD)
+        for name, o in objects.items()}
+    bbox = {n: _bbox(norm[n], placements[n]) for n in objects}
+    lo = np.min([b[0] for b in bbox.values()], 0)
+    hi = np.max([b[1] for b in bbox.values()], 0)
+    centre = (lo + hi) / 2
+    comp_cams = spiral_cameras(cfg.test_views, centre, comp_radius,
+                               azimuth0_deg=layout["sun_azimuth_deg"] + 90.0)
+    with_obj = SceneRenderer(scene_dict(cfg, env, textures, layout, specs))
+    for sub in ("gt", "empty", "mask"):
+        (out / "comp" / sub).mkdir(parents=True, exist_ok=True)
+    for i, cam in enumerate(_bar(comp_cams, "composites", progress)):
+        base = f"r_{i:03d}"
+        for r, sub in ((with_obj, "gt"), (rend, "empty")):
+            write_opaque(out / "comp" / sub / base,
+                         r.radiance(cam["to_world_mitsuba"], spp_test, seed(i, 2)), exr=True)
+        write_png8(out / "comp" / "mask" / f"{base}.png", with_obj.coverage(cam["to_world_mitsuba"]))
+        cam.update(file_path=f"./gt/{base}", empty_path=f"./empty/{base}",
+                   mask_path=f"./mask/{base}.png", radiance_path=f"./gt/{base}.exr",
+                   empty_radiance_path=f"./empty/{base}.exr")
+    _write_transforms(out / "comp", cfg, {"test": comp_cams})
+    seconds["comp"] = time.perf_counter() - t
+    seconds["total"] = time.perf_counter() - t0
+
+    meta = _meta(cfg, variant, scene_map, object_map, objects, placements, bbox, layout, sun,
+                 textures, spp_test, scene_radius, comp_radius, centre, seconds, out)
+    (out / "composition.json").write_text(json.dumps(meta, indent=2))
+    return {"out_dir": str(out), "objects": list(objects), "n_scene_train": cfg.scene_views,
+            "n_test": cfg.test_views, "n_object_train": cfg.object_views,
+            "resolution": cfg.resolution, "seconds": seconds, "variant": variant}
+
+
+def _bbox(v: np.ndarray, p: Similarity) -> tuple[np.ndarray, np.ndarray]:
+    w = p.points(v)                                                            # [N, 3]
+    return w.min(0), w.max(0)
+
+
+def _write_transforms(folder: Path, cfg, cams: dict) -> None:
+    for split, cs in cams.items():
+        frames = []
+        for c in cs:
+            f = _frame_json(c)
+            f.update({k: c[k] for k in ("empty_path", "mask_path", "empty_radiance_path") if k in c})
+            frames.append(f)
+        (folder / f"transforms_{split}.json").write_text(json.dumps(
+            {"camera_angle_x": float(np.radians(cfg.fov_deg)), "w": cfg.resolution,
+             "h": cfg.resolution, "frames": frames}, indent=2))
+
+
+def _meta(cfg, variant, scene_map, object_map, objects, placements, bbox, layout, sun, textures,
+          spp_test, scene_radius, comp_radius, centre, seconds, out) -> dict:
+    rel = lambda p: str(Path(p).relative_to(out))                 # noqa: E731
+    return {
+        "generator": GENERATOR_VERSION, "comgs_dr_version": package_version(),
+        "mitsuba_version": mi.__version__, "variant": variant,
+        "world": "Z-up; ground top at z = 0; scene, comp and transform.json share this frame",
+        "envmap_orientation": {
+            "to_world_mitsuba": ENVMAP_TO_WORLD.tolist(),
+            "mapping": "world dir d -> u = 0.5 - atan2(d_y, d_x)/(2 pi), v = acos(d_z)/pi "
+                       "(v=0 top row; Blender's Z-up equirect convention, as make-dataset object)"},
+        "scene": {"dir": "scene", "envmap": str(scene_map.resolve()),
+                  "envmap_scale": cfg.scene_envmap_scale, "sun_direction": sun.tolist(),
+                  "n_train": cfg.scene_views, "n_test": cfg.test_views,
+                  "sfm_points": int(cfg.sfm_points), "camera_radius": scene_radius,
+                  "ground": {"shape": "rectangle", "half_size": GROUND_HALF, "top_z": 0.0,
+                             "texture": rel(textures["ground"]), "texture_tile": GROUND_TILE,
+                             "roughness": 0.8, "metallic": 0.0},
+                  "props": {k: {"shape": "cube [-1,1]^3", "to_world": p["to_world"].tolist(),
+                                "texture": rel(textures["wall"]) if k == "wall" else None,
+                                "base_color": None if k == "wall" else [0.25, 0.45, 0.3],
+                                "roughness": 0.7 if k == "wall" else 0.4, "metallic": 0.0}
+                            for k, p in layout["props"].items()},
+                  "bsdf": "twosided principled (specular 0.5)"},
+        "objects": {n: {"dir": f"objects/{n}", "mesh": str(Path(o["mesh"]).resolve()),
+                        "envmap": str(object_map.resolve()), "envmap_scale": cfg.object_envmap_scale,
+                        "material": {"bsdf": "twosided principled", "texture": o["texture"],
+                                     "base_color": "texture" if o["texture"] else list(o["base_color"]),
+                                     "roughness": o["roughness"], "metallic": o["metallic"],
+                                     "specular": 0.5},
+                        "object_to_world": o["object_to_world"].tolist(),
+                        "placement": placements[n].matrix.tolist(),
+                        "mesh_to_world": (placements[n].matrix @ o["object_to_world"]).tolist(),
+                        "scale": placements[n].scale,
+                        "rotation_z_deg": float(np.degrees(np.arctan2(*placements[n].rotation[[1, 0], 0]))),
+                        "bbox_world": [bbox[n][0].tolist(), bbox[n][1].tolist()]}
+                    for n, o in objects.items()},
+        "transforms": "transform.json maps an object's capture world (objects/<name>, the mesh "
+                      "normalised by object_to_world) to the scene world; a placed mesh file's "
+                      "to_world = placement @ object_to_world",
+        "comp": {"dir": "comp", "n_test": cfg.test_views, "centre": centre.tolist(),
+                 "camera_radius": comp_radius, "cameras": "spiral, elevation 30 -> 60 deg, one "
+                 "turn, looking at centre", "seed_note": "gt and empty of a frame share the seed"},
+        "render": {"integrator": "path", "max_depth": cfg.max_depth, "resolution":
+                   [cfg.resolution, cfg.resolution], "fov_deg": cfg.fov_deg, "spp_train": cfg.spp,
+                   "spp_test": spp_test, "rfilter": "box", "scene_hide_emitters": False},
+        "colour_space": {
+            "scene_and_comp_png": "opaque 8-bit sRGB (IEC 61966-2-1) of linear radiance clipped "
+                                  "to [0, 1], no alpha",
+            "comp_exr": "linear HDR RGBA radiance, alpha = 1",
+            "mask_png": "8-bit object coverage (16 rays per pixel) in the gt frame",
+            "objects": "see objects/<name>/meta.json (RGBA, straight alpha)"},
+        "transform_matrix": "NeRF/Blender camera-to-world (OpenGL: looks down -Z, +Y up); "
+                            "to_world_mitsuba = transform_matrix @ diag(-1,1,-1,1)",
+        "seconds": {k: ({n: round(s, 2) for n, s in v.items()} if isinstance(v, dict) else round(v, 2))
+                    for k, v in seconds.items()},
+    }
