@@ -27,7 +27,7 @@ import numpy as np
 from comgs_dr.core import colorspace
 from comgs_dr.core.variant import mitsuba_ad_base, variant_class
 from comgs_dr.emitters.octenvmap import emitter_class, is_octenvmap
-from comgs_dr.shading.shade import ShadingConfig, ShadingPoints, shade
+from comgs_dr.shading.shade import SAMPLINGS, ShadingConfig, ShadingPoints, shade
 from comgs_dr.shading.shadow import shadow_ratio
 from comgs_dr.shading.visibility import NoVisibility, SopVisibility, TraceVisibility
 from comgs_dr.sops.occlusion import region_box
@@ -36,23 +36,11 @@ from comgs_dr.sops.query import ProbeGrid
 from comgs_dr.surfels.composite import surfel_shapes
 from comgs_dr.surfels.edit import parse_material_spec
 from comgs_dr.surfels.groups import group_gbuffer, group_materials
-from comgs_dr.surfels.params import object_size
+from comgs_dr.surfels.params import object_bounds, object_size
 from comgs_dr.surfels.shape import SurfelShapeBase
 
 VARIANTS = ("sop", "trace", "noshadow", "paste")
 MIN_WEIGHT = 1e-3             # pixels where a layer covers less than this are not shaded
-
-
-def object_bounds(params, min_opacity: float = 0.1, q: float = 0.5):
-    """World AABB (lo [3], hi [3]) of a surfel object: the ``q``–(100 − ``q``) percentile
-    box of its surfels with opacity ≥ ``min_opacity`` (robust to stray floaters)."""
-    means = np.asarray(params.means, np.float64).reshape(-1, 3)
-    op = 1.0 / (1.0 + np.exp(-np.asarray(params.opacity_logit, np.float64)))
-    m = means[(op >= min_opacity) & np.isfinite(means).all(1)]
-    if len(m) == 0:
-        raise ValueError("object_bounds: no surfel with finite position and opacity ≥ "
-                         f"{min_opacity}")
-    return np.percentile(m, q, axis=0), np.percentile(m, 100 - q, axis=0)
 
 
 class CompositeBase:
@@ -92,15 +80,19 @@ class CompositeBase:
      * - rays, shadow_rays
        - |int|
        - S_r for relighting objects / for the shadow ratio (Default: 256 / 256)
+     * - sampling
+       - |string|
+       - Estimator of the objects' shading: ``mis``, ``uniform`` or ``cosine`` (Default: mis)
      * - indirect
        - |bool|
        - Indirect light L_in on objects from their probes (Default: true)
      * - region_factor
        - |float|
        - Shadow region = object bounds × this (Default: 6, as the probes)
-     * - probe_k, max_hits
+     * - probe_k, max_hits, trace_hits
        - |int|
-       - Probes interpolated per point / surfels composited per ray (Default: 8 / 32)
+       - Probes interpolated per point / surfels composited per camera ray / per traced
+         occlusion ray (Default: 8 / 32 / 32)
      * - colour_space
        - |string|
        - Space of the radiance fields' colour (Default: srgb)
@@ -124,12 +116,17 @@ class CompositeBase:
         self.probe_files = {k[7:]: str(props[k]) for k in keys if k.startswith("probes_")}
         self.materials = {k[9:]: parse_material_spec(str(props[k]))
                           for k in keys if k.startswith("material_")}
-        self.cfg = ShadingConfig(rays=int(props.get("rays", 256)), sampling="mis",
+        sampling = str(props.get("sampling", "mis"))
+        if sampling not in SAMPLINGS:
+            raise ValueError(f"comgs_composite: 'sampling' must be one of {', '.join(SAMPLINGS)}, "
+                             f"got {sampling!r}")
+        self.cfg = ShadingConfig(rays=int(props.get("rays", 256)), sampling=sampling,
                                  indirect=bool(props.get("indirect", True)))
         self.shadow_rays = int(props.get("shadow_rays", 256))
         self.region_factor = float(props.get("region_factor", 6.0))
         self.probe_k = int(props.get("probe_k", 8))
         self.max_hits = int(props.get("max_hits", 32))
+        self.trace_hits = int(props.get("trace_hits", 32))
         self.colour_space = str(props.get("colour_space", "srgb"))
         if self.colour_space not in ("srgb", "linear"):
             raise ValueError(f"comgs_composite: colour_space must be srgb or linear, got "
@@ -196,7 +193,7 @@ class CompositeBase:
                 ids[j]: SurfelShapeBase.from_params(shapes[j].params, id=ids[j])
                 for j in objects}})
             off = 0.01 * max(object_size(shapes[j].params) for j in objects)
-            tv = TraceVisibility(occ_scene, off, 8, self.colour_space)
+            tv = TraceVisibility(occ_scene, off, self.trace_hits, self.colour_space)
             st["trace_vis"] = tv
             for o in st["objects"]:
                 if o["vis"] is None:

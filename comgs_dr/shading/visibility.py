@@ -59,6 +59,9 @@ class SopVisibility:
             self.knn = query(self.grid, dr.detach(pts.position), dr.detach(pts.normal), self.k)
             dr.eval(self.knn.index, self.knn.weight)
         self._knn_key = key
+        # hold the keyed variables: a freed variable's index is reused by new arrays, and a
+        # stale key would then serve another point set's (differently sized) neighbours
+        self._knn_pos = pts.position
 
     def lookup(self, pid, wi, need_radiance: bool):
         if self.knn is None:

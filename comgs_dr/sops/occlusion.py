@@ -117,7 +117,7 @@ def can_occlude(probes: ProbeSet, centre, radius: float, min_texels: float = 0.2
 
 
 def trace_occlusion(probes: ProbeSet, occluder_scene, supersample: int = 2,
-                    max_hits: int = 16, progress: bool = False) -> np.ndarray:
+                    max_hits: int = 32, progress: bool = False) -> np.ndarray:
     """O [P, R, R] of ``probes`` against the surfels of ``occluder_scene`` (positions only
     are used; the probe set is not modified)."""
     tmp = ProbeSet(positions=probes.positions, normals=probes.normals, res=probes.res,

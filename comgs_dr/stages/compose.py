@@ -31,7 +31,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from comgs_dr.data import comp_folder
-from comgs_dr.integrators.comgs_composite import object_bounds
+from comgs_dr.surfels.params import object_bounds
 from comgs_dr.lighting import envmap as em
 from comgs_dr.sops import occlusion as occ
 from comgs_dr.sops.placement import PlacementConfig, fuse_depth, render_geometry
@@ -53,7 +53,7 @@ class ComposeConfig:
     env_res: int = 256               # octahedral texels per side of each object's map
     scene_views: int = 16            # scene views rendered for the surface points
     min_consistent: int = 2          # other views that must agree on a surface point
-    max_hits: int = 16               # surfels composited per occlusion ray
+    max_hits: int = 32               # surfels composited per occlusion ray
     seed: int = 0
 
 

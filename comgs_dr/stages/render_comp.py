@@ -79,7 +79,7 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
         params["to_world"] = mi.ScalarTransform4f(np.asarray(c["to_world"]).tolist())
         params.update()
         t = time.perf_counter()
-        img = integrator.render(scene, sensor, seed=seed + i)
+        img = mi.render(scene, sensor=sensor, seed=seed + i)
         dr.eval(img)
         lin = np.asarray(img, np.float32)[..., :3]
         dt = time.perf_counter() - t

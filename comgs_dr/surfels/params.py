@@ -180,3 +180,15 @@ def object_size(params: SurfelParams) -> float:
     if len(pts) == 0:
         raise ValueError("object_size: the surfel set is empty")
     return float(np.linalg.norm(np.percentile(pts, 99.5, 0) - np.percentile(pts, 0.5, 0)))
+
+
+def object_bounds(params: SurfelParams, min_opacity: float = 0.1, q: float = 0.5):
+    """World AABB (lo [3], hi [3]) of a surfel object: the ``q``–(100 − ``q``) percentile
+    box of its surfels with opacity ≥ ``min_opacity`` (robust to stray floaters)."""
+    means = np.asarray(dr.detach(params.means), np.float64).T                   # [N, 3]
+    op = 1.0 / (1.0 + np.exp(-np.asarray(dr.detach(params.opacity_logit), np.float64)))
+    m = means[(op >= min_opacity) & np.isfinite(means).all(1)]
+    if len(m) == 0:
+        raise ValueError(f"object_bounds: no surfel with a finite position and opacity ≥ "
+                         f"{min_opacity}")
+    return np.percentile(m, q, axis=0), np.percentile(m, 100 - q, axis=0)
