@@ -129,13 +129,13 @@ def _add_make_dataset(sub) -> None:
     c.add_argument("--res", type=int, dest="resolution", metavar="R",
                    help="image side in pixels (default 96)")
     c.add_argument("--scene-views", type=int, dest="scene_views", metavar="N",
-                   help="scene training views (default 48)")
+                   help="scene training views (default 64)")
     c.add_argument("--object-views", type=int, dest="object_views", metavar="N",
                    help="training views per object (default 48)")
     c.add_argument("--test-views", type=int, dest="test_views", metavar="N",
                    help="test views of the scene, of each object and composites (default 8)")
     c.add_argument("--spp", type=int, metavar="S", help="samples per pixel of training views "
-                   "(default 64; test views and composites use twice as many)")
+                   "(default 128; test views and composites use twice as many)")
     c.add_argument("--points", type=int, dest="sfm_points", metavar="N",
                    help="SfM-like points in scene/points3d.ply (default 10000; 0: none)")
     c.add_argument("--seed", type=int, metavar="S", help="camera/placement/noise seed (default 0)")

@@ -27,33 +27,20 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core.colorspace import srgb_encode
 from comgs_dr.core.similarity import Similarity, write_placements
 from comgs_dr.core.variant import package_version
+from comgs_dr.data import synthetic as syn
 from comgs_dr.data import synthetic_io as sio
 from comgs_dr.data.images import write_png8
 from comgs_dr.data.sfm_points import sample_visible_points, write_points_ply
-from comgs_dr.data.synthetic import (
-    ENVMAP_TO_WORLD,
-    GL_FROM_MITSUBA,
-    ObjectDatasetConfig,
-    _bar,
-    _direction,
-    _frame_json,
-    look_at,
-    make_object_dataset,
-    object_transform,
-    shared_data_dir,
-    test_cameras,
-    train_cameras,
-)
 from comgs_dr.lighting.envmap import load_envmap
 
 GENERATOR_VERSION = "comgs_dr.data.composition_dataset/1"
@@ -87,10 +74,10 @@ class CompositionDatasetConfig:
     scene_map: str | Path = "blender_sunrise.exr"
     object_map: str | Path = "blender_studio.exr"
     resolution: int = 96
-    scene_views: int = 48
+    scene_views: int = 64
     object_views: int = 48
     test_views: int = 8
-    spp: int = 64
+    spp: int = 128
     spp_test: int | None = None
     max_depth: int = 8
     seed: int = 0
@@ -112,20 +99,15 @@ class CompositionDatasetConfig:
             if o not in SHARED_OBJECTS and Path(o).suffix.lower() not in MESH_SUFFIXES:
                 raise ValueError(f"unknown object {o!r}: use one of {', '.join(SHARED_OBJECTS)} "
                                  "or a path to an .obj/.ply mesh")
-        for name in ("scene_views", "object_views", "test_views", "spp", "max_depth"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"CompositionDatasetConfig.{name} must be >= 1 "
-                                 f"(got {getattr(self, name)})")
-        if int(self.resolution) < 8:
-            raise ValueError(f"CompositionDatasetConfig.resolution must be >= 8 (got {self.resolution})")
-        if self.spp_test is not None and int(self.spp_test) < 1:
-            raise ValueError(f"CompositionDatasetConfig.spp_test must be >= 1 (got {self.spp_test})")
-        if int(self.sfm_points) < 0:
-            raise ValueError(f"CompositionDatasetConfig.sfm_points must be >= 0 (got {self.sfm_points})")
+        bounds = {"scene_views": 1, "object_views": 1, "test_views": 1, "spp": 1, "max_depth": 1,
+                  "resolution": 8, "sfm_points": 0, "spp_test": 1}
+        for name, lo in bounds.items():
+            v = getattr(self, name)
+            if v is not None and int(v) < lo:
+                raise ValueError(f"CompositionDatasetConfig.{name} must be >= {lo} (got {v})")
         for name in ("object_scale", "spacing", "scene_envmap_scale", "object_envmap_scale"):
-            if not float(getattr(self, name)) > 0:
-                raise ValueError(f"CompositionDatasetConfig.{name} must be > 0 "
-                                 f"(got {getattr(self, name)})")
+            if not float(v := getattr(self, name)) > 0:
+                raise ValueError(f"CompositionDatasetConfig.{name} must be > 0 (got {v})")
         if not 1.0 < float(self.fov_deg) < 120.0:
             raise ValueError(f"CompositionDatasetConfig.fov_deg must be in (1, 120) (got {self.fov_deg})")
 
@@ -134,14 +116,10 @@ class CompositionDatasetConfig:
 
 def resolve_map(m) -> Path:
     """A shared HDRI name (``blender_sunrise.exr``) or an existing path; FileNotFoundError."""
-    p = Path(m)
-    if p.is_file():
-        return p
-    q = shared_data_dir() / "hdri" / str(m)
-    if q.is_file():
-        return q
-    avail = sorted(x.name for x in (shared_data_dir() / "hdri").glob("*")) \
-        if (shared_data_dir() / "hdri").is_dir() else []
+    for p in (Path(m), syn.shared_data_dir() / "hdri" / str(m)):
+        if p.is_file():
+            return p
+    avail = sorted(x.name for x in (syn.shared_data_dir() / "hdri").glob("*"))   # [] if absent
     raise FileNotFoundError(f"environment map not found: {m!r} (neither a file nor a shared map; "
                             f"shared maps: {', '.join(avail) or 'none found'})")
 
@@ -150,11 +128,8 @@ def resolve_objects(names) -> dict[str, dict]:
     """{name: {mesh: Path, texture, base_color, roughness, metallic}} for names or paths."""
     out = {}
     for o in names:
-        if o in SHARED_OBJECTS:
-            spec = dict(SHARED_OBJECTS[o], mesh=shared_data_dir() / SHARED_OBJECTS[o]["mesh"])
-            name = o
-        else:
-            spec, name = dict(PATH_OBJECT, mesh=Path(o)), Path(o).stem
+        spec, name = ((dict(SHARED_OBJECTS[o], mesh=syn.shared_data_dir() / SHARED_OBJECTS[o]["mesh"]), o)
+                      if o in SHARED_OBJECTS else (dict(PATH_OBJECT, mesh=Path(o)), Path(o).stem))
         if not spec["mesh"].is_file():
             raise FileNotFoundError(f"mesh of object {o!r} not found: {spec['mesh']}")
         if name in out:
@@ -192,21 +167,25 @@ def rot_z(deg: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def scene_layout(sun: np.ndarray) -> dict:
-    """Props around the origin from the sun azimuth: a wall 2.6 units on the side away from
-    the sun (lit, it reflects onto the objects), a box to the side. Returns their Mitsuba
-    cube transforms, sizes and the sun azimuth (degrees)."""
-    az = float(np.degrees(np.arctan2(sun[1], sun[0]))) if np.hypot(*sun[:2]) > 1e-6 else 0.0
-    u = _direction(0.0, az)                                        # [3] towards the sun
+def scene_layout(az: float, clear: float) -> dict:
+    """Shapes of the scene for sun azimuth ``az`` (deg) and objects within ``clear`` of the
+    origin: the ground (top at z = 0), a brick wall on the side away from the sun (lit, it
+    reflects onto the objects), a box to the side; {name: {type, to_world [4, 4], texture key
+    or base_color, roughness, uv_repeat}}."""
+    u = syn._direction(0.0, az)                                        # [3] towards the sun
     v = np.cross([0.0, 0.0, 1.0], u)
-    props = {"wall": {"centre": -2.6 * u, "half": (0.1, 2.5, 0.7), "yaw": az},
-             "box": {"centre": 2.4 * v, "half": (0.35, 0.35, 0.35), "yaw": az + 25.0}}
-    for p in props.values():
+    rep = 2 * GROUND_HALF / GROUND_TILE
+    shapes = {"ground": {"type": "rectangle", "to_world": np.diag([GROUND_HALF] * 2 + [1.0, 1.0]),
+                         "texture": "ground", "roughness": 0.8, "uv_repeat": [rep, rep]},
+              "wall": {"type": "cube", "texture": "wall", "roughness": 0.7, "uv_repeat": [3.0, 1.0]},
+              "box": {"type": "cube", "base_color": [0.25, 0.45, 0.3], "roughness": 0.4}}
+    for key, centre, half, yaw in (("wall", -(clear + 1.1) * u, (0.1, 2.5, 0.7), az),
+                                   ("box", (clear + 0.9) * v, (0.35, 0.35, 0.35), az + 25.0)):
         m = np.eye(4)
-        m[:3, :3] = rot_z(p["yaw"]) @ np.diag(p["half"])
-        m[:3, 3] = p["centre"] + [0.0, 0.0, p["half"][2]]          # resting on the ground
-        p["to_world"] = m
-    return {"sun_azimuth_deg": az, "props": props}
+        m[:3, :3] = rot_z(yaw) @ np.diag(half)                     # cube [-1, 1]^3
+        m[:3, 3] = centre + [0.0, 0.0, half[2]]                    # resting on the ground
+        shapes[key]["to_world"] = m
+    return shapes
 
 
 def place_objects(norm_verts: dict[str, np.ndarray], sun_az_deg: float, scale: float,
@@ -215,7 +194,7 @@ def place_objects(norm_verts: dict[str, np.ndarray], sun_az_deg: float, scale: f
     objects on a line 10 deg off the sun azimuth (the first nearest the sun, so it shadows
     the next), ``spacing * 2 * scale`` apart, each lowest point on the ground (z = 0).
     ``norm_verts``: {name: [N, 3] vertices in the capture (normalised) frame}."""
-    u = _direction(0.0, sun_az_deg + 10.0)
+    u = syn._direction(0.0, sun_az_deg + 10.0)
     n, step = len(norm_verts), spacing * 2.0 * scale
     out, radii = {}, []
     for k, (name, v) in enumerate(norm_verts.items()):
@@ -233,36 +212,26 @@ def place_objects(norm_verts: dict[str, np.ndarray], sun_az_deg: float, scale: f
 
 # ----------------------------------------------------------------------------- rendering
 
-def _material(base, roughness: float, metallic: float = 0.0) -> dict:
-    return {"type": "twosided", "material": {"type": "principled", "base_color": base,
-                                             "roughness": roughness, "metallic": metallic}}
-
-
-def _tex(path: Path, repeat=(1.0, 1.0)) -> dict:
-    return {"type": "bitmap", "filename": str(path), "to_uv": mi.ScalarTransform3f().scale(list(repeat))}
-
-
 def scene_dict(cfg, env_bitmap, textures: dict, layout: dict, objects: dict | None = None) -> dict:
-    """Mitsuba scene: path tracer with the env map visible, ground, props, ``objects``
-    ({name: sio.SceneSpec with the placed to_world}), one movable sensor."""
+    """Mitsuba scene: path tracer with the env map visible, the layout's shapes (two-sided
+    principled), ``objects`` ({name: sio.SceneSpec with the placed to_world}), one sensor."""
     T = mi.ScalarTransform4f
-    rep = GROUND_HALF * 2 / GROUND_TILE
-    props = layout["props"]
     d = {"type": "scene",
          "integrator": {"type": "path", "max_depth": int(cfg.max_depth), "hide_emitters": False},
          "env": {"type": "envmap", "bitmap": env_bitmap, "scale": float(cfg.scene_envmap_scale),
-                 "to_world": T(ENVMAP_TO_WORLD.tolist())},
-         "ground": {"type": "rectangle", "to_world": T().scale([GROUND_HALF, GROUND_HALF, 1.0]),
-                    "bsdf": _material(_tex(textures["ground"], (rep, rep)), 0.8)},
-         "wall": {"type": "cube", "to_world": T(props["wall"]["to_world"].tolist()),
-                  "bsdf": _material(_tex(textures["wall"], (3.0, 1.0)), 0.7)},
-         "box": {"type": "cube", "to_world": T(props["box"]["to_world"].tolist()),
-                 "bsdf": _material({"type": "rgb", "value": [0.25, 0.45, 0.3]}, 0.4)},
+                 "to_world": T(syn.ENVMAP_TO_WORLD.tolist())},
          "sensor": {"type": "perspective", "fov": float(cfg.fov_deg), "fov_axis": "x",
                     "film": {"type": "hdrfilm", "width": int(cfg.resolution),
                              "height": int(cfg.resolution), "pixel_format": "rgba",
                              "rfilter": {"type": "box"}},
                     "sampler": {"type": "independent", "sample_count": 1}}}
+    for key, sh in layout.items():
+        base = ({"type": "bitmap", "filename": str(textures[sh["texture"]]),
+                 "to_uv": mi.ScalarTransform3f().scale(sh["uv_repeat"])} if sh.get("texture")
+                else {"type": "rgb", "value": sh["base_color"]})
+        d[key] = {"type": sh["type"], "to_world": T(sh["to_world"].tolist()),
+                  "bsdf": {"type": "twosided", "material": {
+                      "type": "principled", "base_color": base, "roughness": sh["roughness"]}}}
     for name, spec in (objects or {}).items():
         d[f"object_{name}"] = sio.scene_dict(spec, None)["object"]   # same mesh + BSDF as the capture
     return d
@@ -286,11 +255,10 @@ class SceneRenderer(sio.Renderer):
         pos = mi.Point2f(((ix + (sx + 0.5) / ss) / w).ravel(), ((iy + (sy + 0.5) / ss) / h).ravel())
         ray, _ = self.sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
         si = self.scene.ray_intersect(ray)
-        hit = mi.Bool(False)
+        hit = np.zeros(w * h * ss * ss, bool)
         for s in shapes:
-            hit |= si.shape == mi.ShapePtr(s)
-        hit = np.array(dr.select(hit, 1.0, 0.0), np.float32)
-        return hit.reshape(h, w, ss * ss).mean(-1)
+            hit |= np.array(si.shape == mi.ShapePtr(s), bool)
+        return hit.reshape(h, w, ss * ss).mean(-1, dtype=np.float32)
 
 
 def write_opaque(stem: Path, rgba: np.ndarray, exr: bool = False) -> None:
@@ -306,12 +274,11 @@ def spiral_cameras(n: int, centre, radius: float, elevation_deg=(30.0, 60.0),
     full turns in azimuth, all looking at ``centre`` (Z up)."""
     out = []
     for i in range(n):
-        f = i / max(n - 1, 1)
-        e = elevation_deg[0] + f * (elevation_deg[1] - elevation_deg[0])
+        e = elevation_deg[0] + i / max(n - 1, 1) * (elevation_deg[1] - elevation_deg[0])
         a = azimuth0_deg + 360.0 * turns * i / n
-        m = look_at(np.asarray(centre) + radius * _direction(e, a), centre)
+        m = syn.look_at(np.asarray(centre) + radius * syn._direction(e, a), centre)
         out.append({"elevation_deg": float(e), "azimuth_deg": float(a % 360.0),
-                    "to_world_mitsuba": m, "transform_matrix": m @ GL_FROM_MITSUBA})
+                    "to_world_mitsuba": m, "transform_matrix": m @ syn.GL_FROM_MITSUBA})
     return out
 
 
@@ -320,8 +287,9 @@ def spiral_cameras(n: int, centre, radius: float, elevation_deg=(30.0, 60.0),
 def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = True) -> dict:
     """Render the composition dataset into ``cfg.out_dir`` (see the module docstring).
 
-    Returns a summary (out_dir, counts, resolution, seconds per part, variant). Raises
-    FileNotFoundError for missing maps/meshes, ValueError for invalid settings.
+    Returns a summary (out_dir, objects, counts, resolution, seconds per part, variant).
+    Raises FileNotFoundError for missing maps/meshes, ValueError for invalid settings;
+    both before anything is written.
     """
     t0 = time.perf_counter()
     cfg = dataclasses.replace(cfg)                       # re-validates
@@ -329,20 +297,26 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
     objects = resolve_objects(cfg.objects)
     variant = sio.activate_variant(cfg.variant)
     env = load_envmap(scene_map)
-    load_envmap(object_map)                              # validate before rendering
-    out = Path(cfg.out_dir)
-    spp_test = int(cfg.spp_test or 2 * cfg.spp)
+    with warnings.catch_warnings():                      # validate before rendering;
+        warnings.simplefilter("ignore")                  # the object run warns itself
+        load_envmap(object_map)
+    out, spp_test = Path(cfg.out_dir), int(cfg.spp_test or 2 * cfg.spp)
     rng = np.random.default_rng(cfg.seed)
-
     sun = sun_direction(env)
-    layout = scene_layout(sun)
-    norm, raw = {}, {}
+    az = float(np.degrees(np.arctan2(sun[1], sun[0]))) if np.hypot(*sun[:2]) > 1e-6 else 0.0
+    norm = {}                                            # {name: [N, 3] capture-frame vertices}
     for name, o in objects.items():
-        raw[name] = sio.load_mesh(o["mesh"])["vertices"]                      # [N, 3]
-        o["object_to_world"], _ = object_transform(raw[name], "y", 1.0)
-        m = o["object_to_world"]
-        norm[name] = raw[name] @ m[:3, :3].T + m[:3, 3]                       # [N, 3]
-    placements = place_objects(norm, layout["sun_azimuth_deg"], cfg.object_scale, cfg.spacing, rng)
+        v = sio.load_mesh(o["mesh"])["vertices"]
+        o["object_to_world"], _ = syn.object_transform(v, "y", 1.0)
+        norm[name] = v @ o["object_to_world"][:3, :3].T + o["object_to_world"][:3, 3]
+    placements = place_objects(norm, az, cfg.object_scale, cfg.spacing, rng)
+    bbox = {n: (lambda w: (w.min(0), w.max(0)))(placements[n].points(norm[n])) for n in objects}
+    centre = (np.min([b[0] for b in bbox.values()], 0) + np.max([b[1] for b in bbox.values()], 0)) / 2
+    group_r = max(np.linalg.norm(p.translation[:2]) for p in placements.values()) \
+        + np.sqrt(2) * cfg.object_scale                  # horizontal radius of the group
+    comp_radius = float(1.1 * group_r / np.sin(np.radians(cfg.fov_deg) / 2))
+    scene_radius = 1.25 * comp_radius
+    layout = scene_layout(az, group_r)
     textures = write_textures(out / "assets")
     seconds = {}
 
@@ -351,23 +325,19 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
 
     # 1. the scene without objects
     t = time.perf_counter()
-    centres = np.array([p.translation for p in placements.values()])            # [K, 3]
-    group_r = float(np.linalg.norm(centres[:, :2], axis=1).max()) + np.sqrt(2) * cfg.object_scale
-    comp_radius = 1.1 * group_r / np.sin(np.radians(cfg.fov_deg) / 2)
-    scene_radius = 1.25 * comp_radius
-    cams = {"train": train_cameras(cfg.scene_views, scene_radius, rng, (30.0, 70.0)),
-            "test": test_cameras(cfg.test_views, scene_radius, (35.0, 55.0))}
-    rend = SceneRenderer(scene_dict(cfg, env, textures, layout))
+    cams = {"train": syn.train_cameras(cfg.scene_views, scene_radius, rng, (30.0, 70.0)),
+            "test": syn.test_cameras(cfg.test_views, scene_radius, (35.0, 55.0))}
+    empty = SceneRenderer(scene_dict(cfg, env, textures, layout))
     images = []
     for split, spp in (("train", cfg.spp), ("test", spp_test)):
         (out / "scene" / split).mkdir(parents=True, exist_ok=True)
-        for i, cam in enumerate(_bar(cams[split], f"scene {split}", progress)):
-            rgba = rend.radiance(cam["to_world_mitsuba"], spp, seed(i, split == "test"))
+        for i, cam in enumerate(syn._bar(cams[split], f"scene {split}", progress)):
+            rgba = empty.radiance(cam["to_world_mitsuba"], spp, seed(i, split == "test"))
             images += [rgba] if split == "train" else []
             cam["file_path"] = f"./{split}/r_{i}"
             write_opaque(out / "scene" / split / f"r_{i}", rgba)
     if cfg.sfm_points:
-        pts, cols = sample_visible_points(rend.scene, cams["train"], images, cfg.fov_deg,
+        pts, cols = sample_visible_points(empty.scene, cams["train"], images, cfg.fov_deg,
                                           int(cfg.sfm_points), np.random.default_rng(cfg.seed + 17),
                                           radius=scene_radius)
         write_points_ply(out / "scene" / "points3d.ply", pts, cols)
@@ -377,7 +347,7 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
     # 2. each object alone under the object map
     seconds["objects"] = {}
     for k, (name, o) in enumerate(objects.items()):
-        s = make_object_dataset(ObjectDatasetConfig(
+        s = syn.make_object_dataset(syn.ObjectDatasetConfig(
             mesh=o["mesh"], envmap=object_map, out_dir=out / "objects" / name,
             n_train=cfg.object_views, n_test=cfg.test_views, resolution=cfg.resolution,
             spp=cfg.spp, spp_test=spp_test, max_depth=cfg.max_depth, relight_envmaps=(),
@@ -386,8 +356,7 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
             roughness=o["roughness"], metallic=o["metallic"]), progress=progress)
         meta = json.loads((out / "objects" / name / "meta.json").read_text())
         assert np.allclose(meta["object"]["object_to_world"], o["object_to_world"])
-        o["texture"] = meta["texture"]
-        seconds["objects"][name] = s["seconds"]
+        o["texture"], seconds["objects"][name] = meta["texture"], s["seconds"]
     write_placements(out / "transform.json", placements)
 
     # 3. composites: the same scene with the placed objects, and without
@@ -396,23 +365,19 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
         mesh=o["mesh"], object_to_world=placements[name].matrix @ o["object_to_world"],
         texture=Path(o["texture"]) if o["texture"] else None, base_color=o["base_color"],
         roughness=o["roughness"], metallic=o["metallic"], resolution=cfg.resolution,
-        fov_deg=cfg.fov_deg, max_depth=cfg.max_depth, envmap_to_world=ENVMAP_TO_WORLD)
+        fov_deg=cfg.fov_deg, max_depth=cfg.max_depth, envmap_to_world=syn.ENVMAP_TO_WORLD)
         for name, o in objects.items()}
-    bbox = {n: _bbox(norm[n], placements[n]) for n in objects}
-    lo = np.min([b[0] for b in bbox.values()], 0)
-    hi = np.max([b[1] for b in bbox.values()], 0)
-    centre = (lo + hi) / 2
     comp_cams = spiral_cameras(cfg.test_views, centre, comp_radius,
-                               azimuth0_deg=layout["sun_azimuth_deg"] + 90.0)
-    with_obj = SceneRenderer(scene_dict(cfg, env, textures, layout, specs))
+                               azimuth0_deg=az + 90.0)
+    full = SceneRenderer(scene_dict(cfg, env, textures, layout, specs))
     for sub in ("gt", "empty", "mask"):
         (out / "comp" / sub).mkdir(parents=True, exist_ok=True)
-    for i, cam in enumerate(_bar(comp_cams, "composites", progress)):
+    for i, cam in enumerate(syn._bar(comp_cams, "composites", progress)):
         base = f"r_{i:03d}"
-        for r, sub in ((with_obj, "gt"), (rend, "empty")):
+        for r, sub in ((full, "gt"), (empty, "empty")):
             write_opaque(out / "comp" / sub / base,
                          r.radiance(cam["to_world_mitsuba"], spp_test, seed(i, 2)), exr=True)
-        write_png8(out / "comp" / "mask" / f"{base}.png", with_obj.coverage(cam["to_world_mitsuba"]))
+        write_png8(out / "comp" / "mask" / f"{base}.png", full.coverage(cam["to_world_mitsuba"]))
         cam.update(file_path=f"./gt/{base}", empty_path=f"./empty/{base}",
                    mask_path=f"./mask/{base}.png", radiance_path=f"./gt/{base}.exr",
                    empty_radiance_path=f"./empty/{base}.exr")
@@ -420,85 +385,66 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
     seconds["comp"] = time.perf_counter() - t
     seconds["total"] = time.perf_counter() - t0
 
-    meta = _meta(cfg, variant, scene_map, object_map, objects, placements, bbox, layout, sun,
-                 textures, spp_test, scene_radius, comp_radius, centre, seconds, out)
+    obj_meta = {n: {"dir": f"objects/{n}", "mesh": str(Path(o["mesh"]).resolve()),
+                    "envmap": str(object_map.resolve()), "envmap_scale": cfg.object_envmap_scale,
+                    "material": {"bsdf": "twosided principled", "texture": o["texture"],
+                                 "base_color": "texture" if o["texture"] else list(o["base_color"]),
+                                 "roughness": o["roughness"], "metallic": o["metallic"],
+                                 "specular": 0.5},
+                    "object_to_world": o["object_to_world"].tolist(),
+                    "placement": placements[n].matrix.tolist(),
+                    "mesh_to_world": specs[n].object_to_world.tolist(),
+                    "scale": placements[n].scale, "rotation_z_deg": float(np.degrees(np.arctan2(
+                        placements[n].rotation[1, 0], placements[n].rotation[0, 0]))),
+                    "bbox_world": [bbox[n][0].tolist(), bbox[n][1].tolist()]}
+                for n, o in objects.items()}
+    shapes = {k: {**sh, "to_world": sh["to_world"].tolist(), "texture": sh.get("texture") and
+                  f"assets/{sh['texture']}.png"} for k, sh in layout.items()}
+    shapes["ground"].update(half_size=GROUND_HALF, top_z=0.0)
+    meta = {
+        "generator": GENERATOR_VERSION, "comgs_dr_version": package_version(),
+        "mitsuba_version": mi.__version__, "variant": variant,
+        "world": "Z-up; ground top at z = 0; scene/, comp/ and transform.json share this frame",
+        "envmap_orientation": {
+            "to_world_mitsuba": syn.ENVMAP_TO_WORLD.tolist(),
+            "mapping": "world dir d -> u = 0.5 - atan2(d_y, d_x)/(2 pi), v = acos(d_z)/pi (v=0 "
+                       "top row; Blender's Z-up equirect, as make-dataset object; all maps)"},
+        "scene": {"dir": "scene", "envmap": str(scene_map.resolve()),
+                  "envmap_scale": cfg.scene_envmap_scale, "sun_direction": sun.tolist(),
+                  "n_train": cfg.scene_views, "n_test": cfg.test_views,
+                  "sfm_points": int(cfg.sfm_points), "camera_radius": scene_radius,
+                  "shapes": shapes, "bsdf": "twosided principled (specular 0.5, metallic 0); "
+                  "rectangle [-1,1]^2 (normal +Z), cube [-1,1]^3, mapped by to_world"},
+        "objects": obj_meta,
+        "transforms": "transform.json maps an object's capture world (objects/<name>: the mesh "
+                      "normalised by object_to_world) to the scene world; a placed mesh file's "
+                      "to_world = placement @ object_to_world (= mesh_to_world)",
+        "comp": {"dir": "comp", "n_test": cfg.test_views, "centre": centre.tolist(),
+                 "camera_radius": comp_radius, "cameras": "spiral: elevation 30 -> 60 deg, one "
+                 "turn, looking at centre", "noise": "gt and empty of a frame share the seed"},
+        "render": {"integrator": "path", "max_depth": cfg.max_depth, "fov_deg": cfg.fov_deg,
+                   "resolution": [cfg.resolution, cfg.resolution], "spp_train": cfg.spp,
+                   "spp_test": spp_test, "rfilter": "box", "scene_hide_emitters": False},
+        "colour_space": {
+            "png": "scene/ and comp/: opaque 8-bit sRGB (IEC 61966-2-1) of linear radiance "
+                   "clipped to [0, 1]; objects/: see objects/<name>/meta.json (RGBA)",
+            "comp_exr": "linear HDR RGBA radiance, alpha = 1",
+            "mask_png": "8-bit coverage of the objects in the gt frame (16 rays per pixel)"},
+        "transform_matrix": "NeRF/Blender camera-to-world (OpenGL: looks down -Z, +Y up); "
+                            "to_world_mitsuba = transform_matrix @ diag(-1,1,-1,1)",
+        "seconds": {k: ({n: round(x, 2) for n, x in v.items()} if isinstance(v, dict)
+                        else round(v, 2)) for k, v in seconds.items()}}
     (out / "composition.json").write_text(json.dumps(meta, indent=2))
     return {"out_dir": str(out), "objects": list(objects), "n_scene_train": cfg.scene_views,
             "n_test": cfg.test_views, "n_object_train": cfg.object_views,
             "resolution": cfg.resolution, "seconds": seconds, "variant": variant}
 
 
-def _bbox(v: np.ndarray, p: Similarity) -> tuple[np.ndarray, np.ndarray]:
-    w = p.points(v)                                                            # [N, 3]
-    return w.min(0), w.max(0)
-
-
 def _write_transforms(folder: Path, cfg, cams: dict) -> None:
     for split, cs in cams.items():
-        frames = []
-        for c in cs:
-            f = _frame_json(c)
-            f.update({k: c[k] for k in ("empty_path", "mask_path", "empty_radiance_path") if k in c})
-            frames.append(f)
+        frames = [{**syn._frame_json(c), **{k: c[k] for k in ("empty_path", "mask_path",
+                                                              "empty_radiance_path") if k in c}}
+                  for c in cs]
         (folder / f"transforms_{split}.json").write_text(json.dumps(
             {"camera_angle_x": float(np.radians(cfg.fov_deg)), "w": cfg.resolution,
              "h": cfg.resolution, "frames": frames}, indent=2))
-
-
-def _meta(cfg, variant, scene_map, object_map, objects, placements, bbox, layout, sun, textures,
-          spp_test, scene_radius, comp_radius, centre, seconds, out) -> dict:
-    rel = lambda p: str(Path(p).relative_to(out))                 # noqa: E731
-    return {
-        "generator": GENERATOR_VERSION, "comgs_dr_version": package_version(),
-        "mitsuba_version": mi.__version__, "variant": variant,
-        "world": "Z-up; ground top at z = 0; scene, comp and transform.json share this frame",
-        "envmap_orientation": {
-            "to_world_mitsuba": ENVMAP_TO_WORLD.tolist(),
-            "mapping": "world dir d -> u = 0.5 - atan2(d_y, d_x)/(2 pi), v = acos(d_z)/pi "
-                       "(v=0 top row; Blender's Z-up equirect convention, as make-dataset object)"},
-        "scene": {"dir": "scene", "envmap": str(scene_map.resolve()),
-                  "envmap_scale": cfg.scene_envmap_scale, "sun_direction": sun.tolist(),
-                  "n_train": cfg.scene_views, "n_test": cfg.test_views,
-                  "sfm_points": int(cfg.sfm_points), "camera_radius": scene_radius,
-                  "ground": {"shape": "rectangle", "half_size": GROUND_HALF, "top_z": 0.0,
-                             "texture": rel(textures["ground"]), "texture_tile": GROUND_TILE,
-                             "roughness": 0.8, "metallic": 0.0},
-                  "props": {k: {"shape": "cube [-1,1]^3", "to_world": p["to_world"].tolist(),
-                                "texture": rel(textures["wall"]) if k == "wall" else None,
-                                "base_color": None if k == "wall" else [0.25, 0.45, 0.3],
-                                "roughness": 0.7 if k == "wall" else 0.4, "metallic": 0.0}
-                            for k, p in layout["props"].items()},
-                  "bsdf": "twosided principled (specular 0.5)"},
-        "objects": {n: {"dir": f"objects/{n}", "mesh": str(Path(o["mesh"]).resolve()),
-                        "envmap": str(object_map.resolve()), "envmap_scale": cfg.object_envmap_scale,
-                        "material": {"bsdf": "twosided principled", "texture": o["texture"],
-                                     "base_color": "texture" if o["texture"] else list(o["base_color"]),
-                                     "roughness": o["roughness"], "metallic": o["metallic"],
-                                     "specular": 0.5},
-                        "object_to_world": o["object_to_world"].tolist(),
-                        "placement": placements[n].matrix.tolist(),
-                        "mesh_to_world": (placements[n].matrix @ o["object_to_world"]).tolist(),
-                        "scale": placements[n].scale,
-                        "rotation_z_deg": float(np.degrees(np.arctan2(*placements[n].rotation[[1, 0], 0]))),
-                        "bbox_world": [bbox[n][0].tolist(), bbox[n][1].tolist()]}
-                    for n, o in objects.items()},
-        "transforms": "transform.json maps an object's capture world (objects/<name>, the mesh "
-                      "normalised by object_to_world) to the scene world; a placed mesh file's "
-                      "to_world = placement @ object_to_world",
-        "comp": {"dir": "comp", "n_test": cfg.test_views, "centre": centre.tolist(),
-                 "camera_radius": comp_radius, "cameras": "spiral, elevation 30 -> 60 deg, one "
-                 "turn, looking at centre", "seed_note": "gt and empty of a frame share the seed"},
-        "render": {"integrator": "path", "max_depth": cfg.max_depth, "resolution":
-                   [cfg.resolution, cfg.resolution], "fov_deg": cfg.fov_deg, "spp_train": cfg.spp,
-                   "spp_test": spp_test, "rfilter": "box", "scene_hide_emitters": False},
-        "colour_space": {
-            "scene_and_comp_png": "opaque 8-bit sRGB (IEC 61966-2-1) of linear radiance clipped "
-                                  "to [0, 1], no alpha",
-            "comp_exr": "linear HDR RGBA radiance, alpha = 1",
-            "mask_png": "8-bit object coverage (16 rays per pixel) in the gt frame",
-            "objects": "see objects/<name>/meta.json (RGBA, straight alpha)"},
-        "transform_matrix": "NeRF/Blender camera-to-world (OpenGL: looks down -Z, +Y up); "
-                            "to_world_mitsuba = transform_matrix @ diag(-1,1,-1,1)",
-        "seconds": {k: ({n: round(s, 2) for n, s in v.items()} if isinstance(v, dict) else round(v, 2))
-                    for k, v in seconds.items()},
-    }
