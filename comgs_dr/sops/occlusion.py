@@ -36,10 +36,13 @@ from comgs_dr.sops.probes import ProbeSet
 @dataclass(frozen=True)
 class ShadowConfig:
     count: int = 10000               # shadow-region probes per object (sec. 4.1: 10k)
-    res: int = 16                    # octahedral texels per side
+    # 32² texels, one ray each: the same 1024 rays per probe as 16² × 2² supersampling, but
+    # sharper low-sun shadows (measured on `benchmarks/composition.py`: 24.89 vs 24.64 dB,
+    # trace 25.19 dB; same edit time). The paper's SOPs use 16².
+    res: int = 32                    # octahedral texels per side
     box_factor: float = 6.0          # region = object bounds × 6 around the object's centre
     offset_frac: float = 0.01        # probe offset along the normal, × object size
-    supersample: int = 2             # directions per texel side when tracing
+    supersample: int = 1             # directions per texel side when tracing
     neighbours: float = 8.0          # probes within the query radius
 
     def __post_init__(self):

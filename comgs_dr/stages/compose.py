@@ -48,7 +48,7 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class ComposeConfig:
-    """Settings of :func:`compose` (sec. 4.1: 10k shadow probes, 16² texels, 6× region)."""
+    """Settings of :func:`compose` (sec. 4.1: 10k shadow probes, 6× region; 32² texels)."""
     shadow: occ.ShadowConfig = field(default_factory=occ.ShadowConfig)
     env_res: int = 256               # octahedral texels per side of each object's map
     scene_views: int = 16            # scene views rendered for the surface points
@@ -58,7 +58,7 @@ class ComposeConfig:
 
 
 PRESETS = {"default": ComposeConfig(),
-           "fast": ComposeConfig(shadow=occ.ShadowConfig(count=2000, supersample=1),
+           "fast": ComposeConfig(shadow=occ.ShadowConfig(count=2000, res=16),
                                  scene_views=8)}
 
 
