@@ -73,7 +73,9 @@ def variant_class(name: str, methods: type, base: type) -> type:
     class and are copied into one subclass per variant; ``isinstance(x, methods)``
     is replaced by :func:`is_kind`.
     """
-    ns = {k: v for k, v in vars(methods).items() if k not in ("__dict__", "__weakref__")}
+    ns = {}
+    for cls in reversed(methods.__mro__[:-1]):          # mixins first, ``methods`` last
+        ns.update({k: v for k, v in vars(cls).items() if k not in ("__dict__", "__weakref__")})
     ns["_comgs_kind"] = methods.__name__
     return type(name, (base,), ns)
 
@@ -81,6 +83,33 @@ def variant_class(name: str, methods: type, base: type) -> type:
 def is_kind(obj, methods: type) -> bool:
     """True if ``obj`` was built by :func:`variant_class` from ``methods``."""
     return getattr(type(obj), "_comgs_kind", None) == methods.__name__
+
+
+class AttachedRender:
+    """``render`` / ``render_forward`` / ``render_backward`` of an AD integrator whose image
+    is a differentiable expression ``self.render_attached(scene, sensor, seed, spp)``:
+    forward and reverse mode differentiate that expression (as Mitsuba's AD integrators
+    do with their primal pass). ``plugin_name`` names the plugin in errors."""
+    plugin_name = "integrator"
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if not develop:
+            raise RuntimeError(f"{self.plugin_name}: only develop=True rendering is supported")
+        with dr.suspend_grad():
+            img = self.render_attached(scene, sensor, seed, spp)
+            dr.eval(img)
+        return img
+
+    def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
+        with dr.resume_grad():
+            img = self.render_attached(scene, sensor, seed, spp)
+            dr.forward_to(img)
+            return dr.grad(img)
+
+    def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
+        with dr.resume_grad():
+            img = self.render_attached(scene, sensor, seed, spp)
+            dr.backward_from(img * grad_in)
 
 
 def mitsuba_ad_base(name: str = "RBIntegrator"):

@@ -25,7 +25,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core import colorspace
-from comgs_dr.core.variant import mitsuba_ad_base, variant_class
+from comgs_dr.core.variant import AttachedRender, mitsuba_ad_base, variant_class
 from comgs_dr.emitters.octenvmap import emitter_class, is_octenvmap
 from comgs_dr.shading.shade import SAMPLINGS, ShadingConfig, ShadingPoints, shade
 from comgs_dr.shading.shadow import shadow_ratio
@@ -43,7 +43,7 @@ VARIANTS = ("sop", "trace", "noshadow", "paste")
 MIN_WEIGHT = 1e-3             # pixels where a layer covers less than this are not shaded
 
 
-class CompositeBase:
+class CompositeBase(AttachedRender):
     r"""
     .. _integrator-comgs_composite:
 
@@ -99,6 +99,8 @@ class CompositeBase:
 
     Output: linear RGB (RGBA with an alpha film: alpha = total coverage).
     """
+
+    plugin_name = "comgs_composite"
 
     def __init__(self, props: mi.Properties):
         type(self).__bases__[0].__init__(self, props)
@@ -295,25 +297,6 @@ class CompositeBase:
             cover = dr.clip(sum(buf.weight[1:], Ws), 0.0, 1.0)
             return mi.TensorXf(dr.ravel(mi.Vector4f(img.x, img.y, img.z, cover)), shape=(h, w, 4))
         return mi.TensorXf(dr.ravel(img), shape=(h, w, 3))
-
-    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        if not develop:
-            raise RuntimeError("comgs_composite: only develop=True rendering is supported")
-        with dr.suspend_grad():
-            img = self.render_attached(scene, sensor, seed, spp)
-            dr.eval(img)
-        return img
-
-    def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
-        with dr.resume_grad():
-            img = self.render_attached(scene, sensor, seed, spp)
-            dr.forward_to(img)
-            return dr.grad(img)
-
-    def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
-        with dr.resume_grad():
-            img = self.render_attached(scene, sensor, seed, spp)
-            dr.backward_from(img * grad_in)
 
     def to_string(self):
         return f"CompositeIntegrator[variant={self.variant}, rays={self.cfg.rays}]"

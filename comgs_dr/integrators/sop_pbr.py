@@ -20,7 +20,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core import octahedral as octa
-from comgs_dr.core.variant import mitsuba_ad_base, variant_class
+from comgs_dr.core.variant import AttachedRender, mitsuba_ad_base, variant_class
 from comgs_dr.emitters.octenvmap import emitter_class, is_octenvmap
 from comgs_dr.shading.deferred import DeferredPbr
 from comgs_dr.shading.shade import SAMPLINGS, ShadingConfig, shade
@@ -29,7 +29,7 @@ from comgs_dr.sops.probes import ProbeSet
 from comgs_dr.sops.query import ProbeGrid
 
 
-class SopPbrBase:
+class SopPbrBase(AttachedRender):
     r"""
     .. _integrator-sop_pbr:
 
@@ -90,6 +90,8 @@ class SopPbrBase:
     coverage W), colour premultiplied by W. Exactly one ``surfels`` shape carrying
     materials is shaded (other shapes are ignored).
     """
+
+    plugin_name = "sop_pbr"
 
     def __init__(self, props: mi.Properties):
         type(self).__bases__[0].__init__(self, props)
@@ -195,25 +197,6 @@ class SopPbrBase:
         if alpha is None:
             alpha = sensor.film().base_channels_count() == 4
         return pbr.compose_linear(col, geo, alpha, bg)
-
-    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        if not develop:
-            raise RuntimeError("sop_pbr: only develop=True rendering is supported")
-        with dr.suspend_grad():
-            img = self.render_attached(scene, sensor, seed, spp)
-            dr.eval(img)
-        return img
-
-    def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
-        with dr.resume_grad():
-            img = self.render_attached(scene, sensor, seed, spp)
-            dr.forward_to(img)
-            return dr.grad(img)
-
-    def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
-        with dr.resume_grad():
-            img = self.render_attached(scene, sensor, seed, spp)
-            dr.backward_from(img * grad_in)
 
     def to_string(self):
         return (f"SopPbrIntegrator[visibility={self.visibility_kind}, rays={self.cfg.rays}, "
