@@ -30,7 +30,7 @@ def main():
     comgs_dr.set_variant("llvm_ad_rgb")
     from comgs_dr import cli
     from comgs_dr.data.synthetic import make_object_dataset
-    from comgs_dr.demo import scene_dataset_config
+    from comgs_dr.data.procedural import scene_dataset_config
     ds = a.out / "dataset"
     if (ds / "transforms_train.json").exists() and (ds / "points3d.ply").exists() != (a.points > 0):
         ap.error(f"{ds} was made with{'out' if a.points else ''} points; use another --out")

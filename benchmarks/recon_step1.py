@@ -37,7 +37,7 @@ def psnr_table(run: Path) -> None:
 
 def make_data(res: int, root: Path) -> Path:
     from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
-    from comgs_dr.demo import procedural_object, procedural_sky
+    from comgs_dr.data.procedural import procedural_object, procedural_sky
     out = root / f"ds{res}"
     if not (out / "transforms_train.json").exists():
         root.mkdir(parents=True, exist_ok=True)

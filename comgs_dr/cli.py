@@ -23,7 +23,9 @@ from comgs_dr import set_variant
 from comgs_dr.core.config import add_config_arguments, config_overrides
 from comgs_dr.data.load import load_dataset
 from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
-from comgs_dr.demo import DemoConfig, run_demo, scene_dataset_config
+from comgs_dr.data.procedural import scene_dataset_config
+from comgs_dr.demo import PRESETS as DEMO_PRESETS
+from comgs_dr.demo import run_demo
 from comgs_dr.lighting import backends
 from comgs_dr.shading.shade import SAMPLINGS
 from comgs_dr.shading.visibility import KINDS
@@ -206,31 +208,49 @@ def _make_composition(args) -> int:
 # ----------------------------------------------------------------------------- demo
 
 def _add_demo(sub) -> None:
-    d = DemoConfig()
-    p = sub.add_parser("demo", help="run the pipeline on embedded procedural inputs (no download)",
-                       description="Procedural object + sky -> path-traced dataset -> surfels -> "
-                                   "G-buffers vs ground truth -> differentiable colour fit -> "
-                                   "contact sheet (see comgs_dr.demo).")
-    p.add_argument("--out", default=d.out_dir, help=f"output directory (default {d.out_dir})")
-    p.add_argument("--res", type=int, default=d.resolution, help=f"image side (default {d.resolution})")
-    p.add_argument("--surfels", type=int, default=d.surfels, help=f"surfel count (default {d.surfels})")
-    p.add_argument("--iterations", type=int, default=d.fit_iterations,
-                   help=f"colour-fit iterations (default {d.fit_iterations})")
-    p.add_argument("--views", type=int, default=d.n_train, help=f"training views (default {d.n_train})")
+    p = sub.add_parser("demo", help="the whole pipeline on embedded procedural inputs (no download)",
+                       description="Procedural object, scene and maps -> path-traced ground truth -> "
+                                   "object step 1 + step 2, scene step 1 -> lighting estimated at "
+                                   "the placement -> occlusion cached in SOPs -> composition with "
+                                   "SOP shadows, traced shadows and a naive paste, scored against "
+                                   "the ground truth -> OUT/report.html (see comgs_dr.demo).")
+    p.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
+    p.add_argument("--preset", choices=sorted(DEMO_PRESETS), default="default",
+                   help="default: a few minutes on 2 cores; tiny: a smoke test (~1 min)")
+    p.add_argument("--res", type=int, help="image side (default: the preset's)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_demo)
 
 
 def _cmd_demo(args) -> int:
-    s = run_demo(DemoConfig(out_dir=args.out, resolution=args.res, surfels=args.surfels,
-                            fit_iterations=args.iterations, n_train=args.views,
-                            progress=not args.quiet))
-    print(f"[{s['variant']}] {s['surfels']} surfels, {s['resolution']}px: normal MAE vs path-traced "
-          f"GT {s['normal_mae_deg_vs_gt']:.2f} deg, depth median rel. error "
-          f"{s['depth_median_rel_error_vs_gt']:.4f}; test PSNR {s['test_psnr_before_fit']:.2f} -> "
-          f"{s['test_psnr_after_fit']:.2f} dB after {s['fit_iterations']} colour-fit iterations "
-          f"({s['fit_seconds']:.1f} s); total {s['total_seconds']:.1f} s")
-    print(f"outputs: {s['outputs']['figure']}, {s['outputs']['surfels']}, {s['outputs']['dataset']}")
+    cfg = dataclasses.replace(DEMO_PRESETS[args.preset], out_dir=args.out, progress=not args.quiet)
+    if args.res is not None:
+        cfg = dataclasses.replace(cfg, resolution=args.res)
+    s = run_demo(cfg)
+    print(f"[{s['variant']}] composition of {s['frames']} test frames against path-traced ground "
+          f"truth ({cfg.resolution}px):")
+    print(f"{'variant':<10}{'PSNR':>8}{'SSIM':>8}{'s/frame':>10}")
+    for v, m in s["composition"].items():
+        print(f"{v:<10}{m['psnr']:>8.2f}{m['ssim']:>8.4f}{m['frame_seconds']:>10.3f}")
+    print(f"SOP better than paste on {s['sop_beats_paste_frames']}/{s['frames']} frames; total "
+          f"{s['total_seconds']:.0f} s; report: {s['report']}")
+    return 0
+
+
+def _add_report(sub) -> None:
+    p = sub.add_parser("report", help="one self-contained HTML report of a run folder",
+                       description="Plot every metrics.jsonl below RUN_DIR (error against wall "
+                                   "time, per stage), tabulate the stage summaries and inline "
+                                   "the pictures into one HTML file (default RUN_DIR/report.html).")
+    p.add_argument("run", metavar="RUN_DIR")
+    p.add_argument("--out", metavar="FILE.html")
+    p.add_argument("--title")
+    p.set_defaults(func=_cmd_report)
+
+
+def _cmd_report(args) -> int:
+    from comgs_dr.eval.report import write_report
+    print(f"wrote {write_report(args.run, args.out, args.title)}")
     return 0
 
 
@@ -584,7 +604,7 @@ def _cmd_render_comp(args) -> int:
 
 # ----------------------------------------------------------------------------- entry point
 
-_SUBCOMMANDS = (_add_make_dataset, _add_demo, _add_reconstruct, _add_render, _add_decompose,
+_SUBCOMMANDS = (_add_make_dataset, _add_demo, _add_report, _add_reconstruct, _add_render, _add_decompose,
                 _add_relight, _add_estimate_light, _add_train_completion, _add_compose,
                 _add_render_comp)
 

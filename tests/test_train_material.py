@@ -12,7 +12,7 @@ def tiny_run(tmp_path_factory):
     import trimesh
 
     from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
-    from comgs_dr.demo import procedural_object, procedural_sky
+    from comgs_dr.data.procedural import procedural_object, procedural_sky
     from comgs_dr.surfels import from_mesh, save_ply
     from comgs_dr.train.run import write_run_info
     root = tmp_path_factory.mktemp("step2")

@@ -88,6 +88,12 @@ class CompositionDatasetConfig:
     scene_envmap_scale: float = 1.0
     object_envmap_scale: float = 1.0
     variant: str | None = None       # None: keep the active JIT variant
+    #: material of objects given as mesh paths (keys of PATH_OBJECT: texture, base_color,
+    #: roughness, metallic); None: PATH_OBJECT (grey, the mesh's texture if any)
+    path_material: dict | None = None
+    #: elevation range of the scene's training cameras (degrees above the ground); low
+    #: elevations see the horizon and the sky, as a capture at eye level does
+    scene_elevation_deg: tuple[float, float] = (30.0, 70.0)
 
     def __post_init__(self):
         if isinstance(self.objects, str):
@@ -108,6 +114,10 @@ class CompositionDatasetConfig:
         for name in ("object_scale", "spacing", "scene_envmap_scale", "object_envmap_scale"):
             if not float(v := getattr(self, name)) > 0:
                 raise ValueError(f"CompositionDatasetConfig.{name} must be > 0 (got {v})")
+        bad = set(self.path_material or {}) - set(PATH_OBJECT)
+        if bad:
+            raise ValueError(f"CompositionDatasetConfig.path_material: unknown keys {sorted(bad)} "
+                             f"(allowed: {', '.join(PATH_OBJECT)})")
         if not 1.0 < float(self.fov_deg) < 120.0:
             raise ValueError(f"CompositionDatasetConfig.fov_deg must be in (1, 120) (got {self.fov_deg})")
 
@@ -124,12 +134,14 @@ def resolve_map(m) -> Path:
                             f"shared maps: {', '.join(avail) or 'none found'})")
 
 
-def resolve_objects(names) -> dict[str, dict]:
-    """{name: {mesh: Path, texture, base_color, roughness, metallic}} for names or paths."""
+def resolve_objects(names, path_material: dict | None = None) -> dict[str, dict]:
+    """{name: {mesh: Path, texture, base_color, roughness, metallic}} for names or paths
+    (mesh files get :data:`PATH_OBJECT` updated by ``path_material``)."""
     out = {}
+    path_spec = {**PATH_OBJECT, **(path_material or {})}
     for o in names:
         spec, name = ((dict(SHARED_OBJECTS[o], mesh=syn.shared_data_dir() / SHARED_OBJECTS[o]["mesh"]), o)
-                      if o in SHARED_OBJECTS else (dict(PATH_OBJECT, mesh=Path(o)), Path(o).stem))
+                      if o in SHARED_OBJECTS else (dict(path_spec, mesh=Path(o)), Path(o).stem))
         if not spec["mesh"].is_file():
             raise FileNotFoundError(f"mesh of object {o!r} not found: {spec['mesh']}")
         if name in out:
@@ -294,7 +306,7 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
     t0 = time.perf_counter()
     cfg = dataclasses.replace(cfg)                       # re-validates
     scene_map, object_map = resolve_map(cfg.scene_map), resolve_map(cfg.object_map)
-    objects = resolve_objects(cfg.objects)
+    objects = resolve_objects(cfg.objects, cfg.path_material)
     variant = sio.activate_variant(cfg.variant)
     env = load_envmap(scene_map)
     with warnings.catch_warnings():                      # validate before rendering;
@@ -325,7 +337,8 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
 
     # 1. the scene without objects
     t = time.perf_counter()
-    cams = {"train": syn.train_cameras(cfg.scene_views, scene_radius, rng, (30.0, 70.0)),
+    cams = {"train": syn.train_cameras(cfg.scene_views, scene_radius, rng,
+                                       tuple(cfg.scene_elevation_deg)),
             "test": syn.test_cameras(cfg.test_views, scene_radius, (35.0, 55.0))}
     empty = SceneRenderer(scene_dict(cfg, env, textures, layout))
     images = []

@@ -348,3 +348,43 @@ def sphere_metrics(est_renders: dict, gt_renders: dict, mask) -> dict:
         out[m] = {"si_rmse": si_rmse(est, gt, mask),
                   "angular_deg": angular_error_deg(est, gt, mask), "nrmse": nrmse(est, gt, mask)}
     return out
+
+
+# ---------------------------------------------------------------------------------------
+# One estimated map against the true one (the demo, reports)
+
+def irradiance(env, normal) -> float:
+    """Luminance irradiance E(n) = Σ L(ω) max(0, n·ω) dω of a linear equirect map."""
+    env = _check_map(env, "irradiance")
+    h, w = env.shape[:2]
+    cos = np.clip(equirect_directions(h, w) @ np.asarray(normal, np.float64), 0.0, None)
+    lum = env @ np.array([0.2126, 0.7152, 0.0722])
+    return float((lum * cos * pixel_solid_angles(h, w)).sum())
+
+
+def compare_maps(est, gt, size: int = 48) -> dict:
+    """Scores of an estimated map against the true one (both linear equirect; ``est`` is
+    area-resampled to ``gt``'s size): array-of-spheres si-RMSE / angular error (diffuse and
+    matte silver), the angle between the dominant lights (``hdr.extract_lights``), and the
+    irradiance ratio E(facing the true dominant light) / E(facing up) of each map."""
+    from comgs_dr.lighting.hdr import extract_lights
+    gt = _check_map(gt, "compare_maps gt")
+    est = area_resize_equirect(_check_map(est, "compare_maps est"), *gt.shape[:2])
+    mats = ("diffuse", "matte_silver")
+    r_est, mask = render_spheres(est, mats, size)
+    r_gt, _ = render_spheres(gt, mats, size)
+    out = {"spheres": sphere_metrics(r_est, r_gt, mask)}
+    le, lg = extract_lights(est, k=1), extract_lights(gt, k=1)
+    if lg:
+        d = lg[0]["direction"]
+        out["true_light_direction"] = [float(x) for x in d]
+        if le:
+            out["light_angle_deg"] = float(np.degrees(np.arccos(np.clip(
+                float(le[0]["direction"] @ d), -1.0, 1.0))))
+        up = np.array([0.0, 0.0, 1.0])
+        for name, m in (("est", est), ("gt", gt)):
+            e_up = irradiance(m, up)
+            out[f"light_up_irradiance_ratio_{name}"] = irradiance(m, d) / e_up if e_up > 0 else None
+    dw = pixel_solid_angles(*gt.shape[:2])[..., None]
+    out["power_ratio_est_gt"] = float((est * dw).sum() / max(float((gt * dw).sum()), 1e-300))
+    return out

@@ -39,6 +39,7 @@ from comgs_dr.sops.probes import ProbeSet
 from comgs_dr.surfels.io import load_ply
 from comgs_dr.surfels.shape import SurfelShapeBase
 from comgs_dr.surfels.transform import transform_surfels
+from comgs_dr.core import runlog
 from comgs_dr.core.similarity import read_placements
 from comgs_dr.train.run import load_run_dataset, read_run_info, select_views
 from comgs_dr.train.checkpoint import atomic_write_text
@@ -288,4 +289,11 @@ def compose(scene_run, objects: dict, placement, out, env=None, estimator=None,
                "rays_per_probe": res * res * cfg.shadow.supersample ** 2,
                "recomputed": [m for m in cache.misses if not m.startswith("occ_")]}
     atomic_write_text(out / "edit.json", json.dumps(summary, indent=1))
+    t, recs = 0.0, []                    # one (cumulative time, part) record per part
+    for part, sec in timings.items():
+        if part != "total":
+            t += float(sec)
+            recs.append(runlog.record("compose", t, part=part, part_s=float(sec),
+                                      shadow_probes=shadow.count))
+    runlog.rewrite(out, recs)
     return summary

@@ -345,7 +345,8 @@ def train_material(run_dir, out_dir=None, cfg: MaterialConfig = MaterialConfig()
                    progress: bool = True, data=None) -> dict:
     """Run (or resume) step 2; returns the summary written to ``train_log.json``."""
     tr = MaterialTrainer(run_dir, out_dir, cfg, progress, data)
-    stopped_early = run_loop(tr, cfg, f"step 2 ({cfg.visibility})", progress)
+    stopped_early = run_loop(tr, cfg, f"step 2 ({cfg.visibility})", progress,
+                             jsonl_dir=tr.out_dir, stage="decompose")
     final = tr.evaluate()
     paths = tr.save_outputs()
     its = [r for r in tr.log if "t_render" in r]
@@ -357,4 +358,4 @@ def train_material(run_dir, out_dir=None, cfg: MaterialConfig = MaterialConfig()
                "nonfinite_gradients": tr.nonfinite_total,
                "probes": ProbeSet.load(tr.out_dir / "probes.npz").count if tr.has_sops else None,
                "config": dataclasses.asdict(cfg)}
-    return finish(tr, tr.out_dir, summary)
+    return finish(tr, tr.out_dir, summary, stage="decompose")

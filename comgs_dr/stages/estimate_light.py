@@ -37,7 +37,7 @@ import mitsuba as mi
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from comgs_dr.core import colorspace
+from comgs_dr.core import colorspace, runlog
 from comgs_dr.core.equirect import coverage
 from comgs_dr.data.images import to_u8
 from comgs_dr.lighting import envmap, hdr
@@ -253,13 +253,14 @@ def _jsonable(x):
 # Files
 
 def output_paths(out_path) -> dict:
-    """{'equirect': X.exr, 'oct': X_oct.exr, 'json': X.json, 'preview': X_preview.png}."""
+    """{'equirect': X.exr, 'oct': X_oct.exr, 'json': X.json, 'preview': X_preview.png,
+    'metrics': X.metrics.jsonl}."""
     p = Path(out_path)
     if p.suffix.lower() != ".exr":
         raise ValueError(f"write_outputs: the output must be an .exr file, got {p}")
     stem = p.with_suffix("")
     return {"equirect": p, "oct": Path(f"{stem}_oct.exr"), "json": Path(f"{stem}.json"),
-            "preview": Path(f"{stem}_preview.png")}
+            "preview": Path(f"{stem}_preview.png"), "metrics": Path(f"{stem}.{runlog.LOG_NAME}")}
 
 
 def write_outputs(result: dict, out_path) -> dict:
@@ -273,6 +274,13 @@ def write_outputs(result: dict, out_path) -> dict:
            "lights": _lights_json(result["lights"]),
            "files": {k: v.name for k, v in paths.items()}}
     paths["json"].write_text(json.dumps(_jsonable(doc), indent=2))
+    t, recs = 0.0, []                    # one (cumulative time, part) record per part
+    for part, sec in result["timings"].items():
+        if part != "total":
+            t += float(sec)
+            recs.append(runlog.record("estimate-light", t, part=part, part_s=float(sec),
+                                      coverage=float(result["coverage"])))
+    runlog.rewrite(paths["metrics"].parent, recs, name=paths["metrics"].name)
     preview_image(result).save(paths["preview"])
     return paths
 

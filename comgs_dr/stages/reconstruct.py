@@ -480,7 +480,8 @@ def train_radiance(data, run_dir, cfg: RadianceConfig, progress: bool = True) ->
     tr = Trainer(data, run_dir, cfg, progress)
     run_dir = Path(run_dir)
     best = BestState()
-    stopped_early = run_loop(tr, cfg, "step 1", progress, log_dir=run_dir, best=best)
+    stopped_early = run_loop(tr, cfg, "step 1", progress, log_dir=run_dir, best=best,
+                             jsonl_dir=run_dir, stage="reconstruct")
     final = tr.evaluate(cfg.eval_views)
     diverged = best.settle(tr, final["psnr_select"], tr.iteration, "step 1")   # summary only
     final = tr.evaluate()
@@ -488,4 +489,4 @@ def train_radiance(data, run_dir, cfg: RadianceConfig, progress: bool = True) ->
     summary = {"iterations": tr.iteration, "train_seconds": tr.elapsed, "surfels": tr.params().count,
                "init": tr.init_desc, "stopped_early": stopped_early, "diverged": diverged, **final,
                "config": dataclasses.asdict(cfg)}
-    return finish(tr, run_dir, summary)
+    return finish(tr, run_dir, summary, stage="reconstruct")

@@ -19,6 +19,7 @@ import mitsuba as mi
 import numpy as np
 from tqdm.auto import tqdm
 
+from comgs_dr.core import runlog
 from comgs_dr.core.colorspace import srgb_encode
 from comgs_dr.data import comp_folder
 from comgs_dr.data.images import read_image, write_png8
@@ -71,6 +72,8 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
     out_dir.mkdir(parents=True, exist_ok=True)
     frames = []
     size = (cams[0]["width"], cams[0]["height"])
+    stage, jsonl = f"render-comp {variant}", f"render_{variant}.{runlog.LOG_NAME}"
+    runlog.rewrite(comp_dir, [], name=jsonl)        # (render time, per-frame error) records
     for i, c in enumerate(tqdm(cams, desc=f"render-comp {variant}", unit="frame",
                                disable=not progress)):
         if (c["width"], c["height"]) != size:
@@ -92,6 +95,9 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
             q = np.round(disp * 255.0) / 255.0          # score the written 8-bit image
             rec.update(psnr=psnr(q, gts[c["name"]]), ssim=ssim(q, gts[c["name"]]))
         frames.append(rec)
+        runlog.append(comp_dir, runlog.record(stage, sum(f["seconds"] for f in frames),
+                                              frame=i, **{k: v for k, v in rec.items()
+                                                          if k in ("psnr", "ssim")}), name=jsonl)
     times = [f["seconds"] for f in frames]
     summary = {"variant": variant, "frames": len(frames), "resolution": list(size),
                "frame_seconds": float(np.median(times[1:] if len(times) > 1 else times)),

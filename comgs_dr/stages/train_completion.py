@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from comgs_dr.core import colorspace, equirect
+from comgs_dr.core import colorspace, equirect, runlog
 from comgs_dr.core.variant import set_variant
 from comgs_dr.data import pano_masks
 from comgs_dr.data.synthetic import shared_data_dir
@@ -233,6 +233,8 @@ def train(cfg: TrainCompletionConfig, progress: bool = True, command: str | None
     budget = cfg.minutes * 60.0
     t0 = time.perf_counter()
     hist, step, step1_end = [], 0, None
+    jsonl_name = f"{Path(cfg.out).stem}.{runlog.LOG_NAME}"     # (time, validation loss) records
+    runlog.rewrite(Path(cfg.out).parent, [], name=jsonl_name)
     bar = tqdm(total=int(budget), desc="train-completion", unit="s", disable=not progress)
     while step < cfg.max_steps:
         el = time.perf_counter() - t0
@@ -261,6 +263,8 @@ def train(cfg: TrainCompletionConfig, progress: bool = True, command: str | None
                    "loss": round(loss.item(), 5), "val_ev0": round(float(np.mean(vl[:2])), 5),
                    "val_ev": round(float(np.mean(vl[2:])), 5), "lr": opt.param_groups[0]["lr"]}
             hist.append(rec)
+            runlog.append(Path(cfg.out).parent, runlog.record("train-completion", **rec),
+                          name=jsonl_name)
             bar.set_postfix(loss=rec["loss"], val0=rec["val_ev0"], valev=rec["val_ev"])
         bar.n = int(min(budget, time.perf_counter() - t0))
         bar.refresh()

@@ -10,7 +10,9 @@ best state, ``snapshot() -> state`` / ``restore(state)``: then every evaluation 
 beats the best so far is snapshotted (:class:`BestState`). The config gives
 ``iterations``, ``log_every``, ``eval_every``, ``eval_views``, ``checkpoint_every`` and
 ``time_limit_s``. Every record is ``{"iteration", "time_s", **stats[, psnr_test]}``; evaluation
-time does not count as training time.
+time does not count as training time. With a ``jsonl_dir`` each record is also appended to
+``metrics.jsonl`` as it is taken (``core.runlog``; rewritten from the restored log on resume
+and at the end), so ``comgs report`` can plot a run that is still going.
 """
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ from pathlib import Path
 import drjit as dr
 from tqdm.auto import tqdm
 
+from comgs_dr.core import runlog
 from comgs_dr.train.checkpoint import atomic_write_text
 
 LOG_NAME = "train_log.json"
@@ -75,9 +78,15 @@ class BestState:
 
 
 def run_loop(trainer, cfg, desc: str, progress: bool = True, log_dir: Path | None = None,
-             best: BestState | None = None) -> bool:
+             best: BestState | None = None, jsonl_dir: Path | None = None,
+             stage: str | None = None) -> bool:
     """Run ``trainer`` up to ``cfg.iterations`` (from wherever it resumed). With ``log_dir``
-    the log is also written at every checkpoint. Returns True if the time limit stopped it."""
+    the log is also written at every checkpoint; with ``jsonl_dir`` every record goes to its
+    ``metrics.jsonl`` as stage ``stage`` (default ``desc``). Returns True if the time limit
+    stopped it."""
+    stage = stage or desc
+    if jsonl_dir is not None:      # a resumed run drops the records after its checkpoint
+        runlog.rewrite(jsonl_dir, runlog.from_train_log(stage, trainer.log))
     bar = tqdm(total=cfg.iterations, initial=trainer.iteration, desc=desc, unit="it",
                dynamic_ncols=True, disable=not progress)
     t0 = time.perf_counter() - trainer.elapsed
@@ -97,6 +106,8 @@ def run_loop(trainer, cfg, desc: str, progress: bool = True, log_dir: Path | Non
                     best.offer(trainer, rec["psnr_select"], it)
                 t0 += time.perf_counter() - t_eval        # evaluation is not training time
             trainer.log.append(rec)
+            if jsonl_dir is not None:
+                runlog.append(jsonl_dir, runlog.from_train_log(stage, [rec])[0])
             bar.set_postfix(loss=f"{stats['loss']:.4f}",
                             psnr=f"{rec.get('psnr_test', stats['psnr_train']):.2f}", **extra())
         bar.update(1)
@@ -134,8 +145,11 @@ def plot_psnr(log: list, path: Path) -> None:
     plt.close(fig)
 
 
-def finish(trainer, out_dir: Path, summary: dict) -> dict:
-    """Write the final log with its summary and the PSNR-against-time plot."""
+def finish(trainer, out_dir: Path, summary: dict, stage: str | None = None) -> dict:
+    """Write the final log with its summary, ``metrics.jsonl`` (as ``stage``, when given)
+    and the PSNR-against-time plot."""
     write_log(out_dir, trainer.log, summary)
+    if stage is not None:
+        runlog.rewrite(out_dir, runlog.from_train_log(stage, trainer.log))
     plot_psnr(trainer.log, Path(out_dir) / "psnr_vs_time.png")
     return summary
