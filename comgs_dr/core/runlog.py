@@ -28,6 +28,8 @@ def _clean(rec: dict) -> dict:
     out = {}
     for k, v in rec.items():
         if hasattr(v, "item") and not isinstance(v, (str, bytes)):
+            if getattr(v, "ndim", 0) != 0:
+                continue                          # arrays are not logged
             v = v.item()
         if isinstance(v, float) and not math.isfinite(v):
             v = None

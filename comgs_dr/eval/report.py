@@ -264,8 +264,9 @@ def build_report(run_dir, title: str | None = None) -> str:
         parts += ["<h2>Error against run time, every stage</h2>",
                   _img(plot, "each stage's metrics.jsonl: PSNR or loss against wall time; "
                              "part timelines for stages without an error measure")]
-    parts.append(_summaries(run_dir))
-    if not logs and not pics and len(parts) == 2:
+    summaries = _summaries(run_dir)
+    parts.append(summaries)
+    if not logs and not pics and not summaries and not demo.is_file():
         raise FileNotFoundError(f"comgs report: nothing to report in {run_dir} (no "
                                 f"metrics.jsonl, summaries or pictures of a comgs stage)")
     return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>"
