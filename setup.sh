@@ -31,7 +31,9 @@ fi
 
 case "${1:-}" in
   demo) shift; exec "$VENV/bin/comgs" demo "$@" ;;
-  test) shift; "$VENV/bin/lint-imports"; exec "$VENV/bin/python" -m pytest -q "$@" ;;
+  test) shift; "$VENV/bin/lint-imports"
+        export COMGS_NOTEBOOK_TINY="${COMGS_NOTEBOOK_TINY:-1}"   # notebooks at smoke-test sizes
+        exec "$VENV/bin/python" -m pytest -q "$@" ;;
   "") echo "[setup] done. Activate with: source $VENV/bin/activate" ;;
   *) echo "usage: bash setup.sh [demo|test] [extra args]" >&2; exit 2 ;;
 esac

@@ -1,7 +1,16 @@
+import os
+import tempfile
+
 import numpy as np
 import pytest
 
 import comgs_dr
+
+# The notebooks (collected from notebooks/ by nbmake in the same run) execute at smoke-test
+# sizes into a temporary folder: their kernels inherit this environment.
+os.environ.setdefault("COMGS_NOTEBOOK_TINY", "1")
+os.environ.setdefault("COMGS_NOTEBOOK_OUT", tempfile.mkdtemp(prefix="comgs_notebooks_"))
+os.environ.setdefault("MPLBACKEND", "Agg")
 
 
 @pytest.fixture(scope="session", autouse=True)
