@@ -218,8 +218,7 @@ def run_demo(cfg: DemoConfig) -> dict:
         "edit_seconds": edit["timings"],
     }
     (out / "demo.json").write_text(json.dumps(summary, indent=1))
-    runlog.rewrite(out, [runlog.record("demo", sum(list(times.values())[:i + 1]), part=k,
-                                       part_s=v) for i, (k, v) in enumerate(times.items())])
+    runlog.rewrite(out, runlog.part_records("demo", times))
     report.write_report(out, out / "report.html", title="comgs demo")
     summary["report"] = str(out / "report.html")
     return summary

@@ -73,6 +73,17 @@ def from_train_log(stage: str, log: list) -> list[dict]:
             for r in log]
 
 
+def part_records(stage: str, timings: dict, **extra) -> list[dict]:
+    """One record per timed part ({part: seconds}, in order; a ``total`` entry is skipped):
+    ``time_s`` = the cumulative time at the part's end, ``part``, ``part_s`` and ``extra``."""
+    t, out = 0.0, []
+    for part, sec in timings.items():
+        if part != "total":
+            t += float(sec)
+            out.append(record(stage, t, part=part, part_s=float(sec), **extra))
+    return out
+
+
 def read_records(path) -> list[dict]:
     """The records of a ``metrics.jsonl`` file (a torn or unparsable line is skipped; a
     record without ``stage``/``time_s`` raises ValueError naming the file and line)."""

@@ -289,11 +289,5 @@ def compose(scene_run, objects: dict, placement, out, env=None, estimator=None,
                "rays_per_probe": res * res * cfg.shadow.supersample ** 2,
                "recomputed": [m for m in cache.misses if not m.startswith("occ_")]}
     atomic_write_text(out / "edit.json", json.dumps(summary, indent=1))
-    t, recs = 0.0, []                    # one (cumulative time, part) record per part
-    for part, sec in timings.items():
-        if part != "total":
-            t += float(sec)
-            recs.append(runlog.record("compose", t, part=part, part_s=float(sec),
-                                      shadow_probes=shadow.count))
-    runlog.rewrite(out, recs)
+    runlog.rewrite(out, runlog.part_records("compose", timings, shadow_probes=shadow.count))
     return summary

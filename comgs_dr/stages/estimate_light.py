@@ -274,13 +274,10 @@ def write_outputs(result: dict, out_path) -> dict:
            "lights": _lights_json(result["lights"]),
            "files": {k: v.name for k, v in paths.items()}}
     paths["json"].write_text(json.dumps(_jsonable(doc), indent=2))
-    t, recs = 0.0, []                    # one (cumulative time, part) record per part
-    for part, sec in result["timings"].items():
-        if part != "total":
-            t += float(sec)
-            recs.append(runlog.record("estimate-light", t, part=part, part_s=float(sec),
-                                      coverage=float(result["coverage"])))
-    runlog.rewrite(paths["metrics"].parent, recs, name=paths["metrics"].name)
+    runlog.rewrite(paths["metrics"].parent,
+                   runlog.part_records("estimate-light", result["timings"],
+                                       coverage=float(result["coverage"])),
+                   name=paths["metrics"].name)
     preview_image(result).save(paths["preview"])
     return paths
 
