@@ -45,6 +45,7 @@ from comgs_dr.stages.render_comp import VARIANTS as RENDER_VARIANTS
 from comgs_dr.stages.render_comp import render_comp
 from comgs_dr.stages.render_run import render_run
 from comgs_dr.surfels.edit import parse_mask_spec, parse_material_spec
+from comgs_dr.train.interrupt import TrainingInterrupted
 from comgs_dr.train.run import write_run_info
 
 # ----------------------------------------------------------------------------- make-dataset
@@ -627,9 +628,15 @@ def main(argv: list[str] | None = None) -> int:
         return int(e.code or 0)
     try:
         return int(args.func(args) or 0)
+    except TrainingInterrupted as e:     # SIGINT/SIGTERM: the checkpoint is written
+        print(f"comgs {args.command}: stopped by {e}", file=sys.stderr)
+        return e.exit_code
     except (FileNotFoundError, ValueError, ImportError) as e:
         print(f"comgs {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:                 # full disk, unwritable folder
+        print(f"comgs {args.command}: error: {e}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

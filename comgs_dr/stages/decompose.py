@@ -81,6 +81,7 @@ class MaterialConfig:
     eval_views: int = 6
     log_every: int = 10
     checkpoint_every: int = 200
+    checkpoint_every_s: float | None = 300.0   # also by wall time; SIGINT/SIGTERM write one too
     seed: int = 0
     time_limit_s: float | None = None
 
@@ -299,11 +300,16 @@ class MaterialTrainer:
     def _keys(self) -> dict:
         return {k: k for k in list(MAT_KEYS) + [ENV_KEY] + ([SOPS_KEY] if self.has_sops else [])}
 
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.out_dir / ck.CKPT_NAME
+
     def checkpoint(self):
-        ck.save_checkpoint(self.out_dir / ck.CKPT_NAME, CKPT_FORMAT,
+        ck.save_checkpoint(self.checkpoint_path, CKPT_FORMAT,
                            {k: np.asarray(self.opt[k]) for k in self._keys()}, self.opt,
                            self._keys(), {"iteration": self.iteration, "elapsed": self.elapsed,
-                                          "log": self.log, "config": dataclasses.asdict(self.cfg)})
+                                          "log": self.log, "config": dataclasses.asdict(self.cfg),
+                                          "rng_state": self.rng.bit_generator.state})
 
     def _load_checkpoint(self):
         p = self.out_dir / ck.CKPT_NAME
@@ -325,6 +331,8 @@ class MaterialTrainer:
             self.opt[k] = self._from_numpy(k, arrays[k], self.opt[k])
         ck.restore_moments(self.opt, self._keys(), moments, self._from_numpy)
         self.iteration, self.elapsed, self.log = state["iteration"], state["elapsed"], state["log"]
+        if "rng_state" in state:
+            self.rng.bit_generator.state = state["rng_state"]
 
     def save_outputs(self) -> dict:
         self._apply()

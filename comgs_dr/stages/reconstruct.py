@@ -104,6 +104,7 @@ class RadianceConfig:
     eval_views: int = 8
     log_every: int = 25
     checkpoint_every: int = 500
+    checkpoint_every_s: float | None = 300.0   # also by wall time; SIGINT/SIGTERM write one too
     seed: int = 0
     time_limit_s: float | None = None     # stop early (after a checkpoint) when exceeded
 
@@ -246,7 +247,10 @@ class Trainer:
             params = SurfelParams.from_numpy(**{k: arrays[k] for k in field_names()})
             self.iteration, self.log, self.elapsed = state["iteration"], state["log"], state["elapsed"]
             self.init_desc = state["init"]
-            self.rng = np.random.default_rng(state["rng_seed"])
+            if "rng_state" in state:        # the stream continues exactly where it was
+                self.rng.bit_generator.state = state["rng_state"]
+            else:                           # checkpoints of older versions
+                self.rng = np.random.default_rng(state["rng_seed"])
         else:
             params, self.init_desc = initial_surfels(data, cfg, self.rng)
             params = _with_sh_degree(params, 0)
@@ -462,12 +466,16 @@ class Trainer:
         self.density._reset_stats(self.params().count)
         dr.eval()
 
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.run_dir / ck.CKPT_NAME
+
     def checkpoint(self):
         n = self.params().count
         ck.save_checkpoint(
-            self.run_dir / ck.CKPT_NAME, CKPT_FORMAT, self.params().to_numpy(), self.opt,
+            self.checkpoint_path, CKPT_FORMAT, self.params().to_numpy(), self.opt,
             PARAM_KEYS, {"iteration": self.iteration, "log": self.log, "elapsed": self.elapsed,
-                         "init": self.init_desc, "rng_seed": int(self.rng.integers(1 << 31)),
+                         "init": self.init_desc, "rng_state": self.rng.bit_generator.state,
                          "config": dataclasses.asdict(self.cfg)},
             to_numpy=lambda f, v: field_to_numpy(f, v, n))
 

@@ -19,6 +19,12 @@ clipping 1.0. The learning rate is 1e-3, not the paper's 1e-4: we train from scr
 cosine decay follows the fraction of the time budget spent. Block-averaged L1 terms
 (``lowfreq``) weigh the low frequencies that light diffuse and rough objects.
 
+Faults: a checkpoint (``<out stem>.ckpt.pt``: model, AdamW, step, training seconds, the
+history and the RNG states) is written atomically every ``checkpoint_every`` steps or
+``checkpoint_every_s`` seconds and on SIGINT/SIGTERM; the same command resumes from it (the
+budget and step limit may change, the rest of the config may not), continuing the same
+random streams, so a resumed run repeats the uninterrupted one.
+
 Data (``pano_data``): Poly Haven maps from ``shared/data/hdri`` minus the held-out ones,
 Mitsuba ``sunsky`` skies, path-traced procedural rooms and masks traced from procedural surfel
 scenes; generated once into ``DATA_DIR/completion_data.npz`` and reused.
@@ -46,6 +52,8 @@ from comgs_dr.lighting import completion as C
 from comgs_dr.lighting import pano_data as P
 from comgs_dr.lighting.backends import DEFAULT_WEIGHTS
 from comgs_dr.lighting.hdr import expose
+from comgs_dr.train import checkpoint as ck
+from comgs_dr.train.interrupt import CheckpointClock, stop_signals
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +91,53 @@ class TrainCompletionConfig:
     threads: int = 2
     source_probs: tuple = (0.3, 0.35, 0.35)   # poly haven, sky, room
     net: dict = field(default_factory=dict)   # extra CompletionConfig fields
+    checkpoint_every: int = 200
+    checkpoint_every_s: float | None = 300.0
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return Path(self.out).with_suffix(".ckpt.pt")
+
+
+# fields a resumed run may change (the rest must match the checkpoint's)
+RESUMABLE = ("minutes", "max_steps", "threads", "checkpoint_every", "checkpoint_every_s", "out")
+
+
+def _config_key(cfg: TrainCompletionConfig) -> dict:
+    return {k: (str(v) if isinstance(v, Path) else list(v) if isinstance(v, tuple) else v)
+            for k, v in asdict(cfg).items() if k not in RESUMABLE}
+
+
+def _save_checkpoint(cfg, model, opt, sampler, step, elapsed, hist, step1_end) -> None:
+    import io
+    buf = io.BytesIO()
+    torch.save({"format": "comgs_dr.completion_train/1", "config": _config_key(cfg),
+                "model": model.state_dict(), "opt": opt.state_dict(), "step": step,
+                "elapsed": elapsed, "hist": hist, "step1_end": step1_end,
+                "rng": sampler.rng.bit_generator.state, "torch_rng": torch.get_rng_state()}, buf)
+    ck.atomic_write_bytes(cfg.checkpoint_path, buf.getvalue())
+
+
+def _load_checkpoint(cfg) -> dict | None:
+    """The checkpoint of this config, None if there is none; ValueError naming the file if it
+    is unreadable or of another config."""
+    p = cfg.checkpoint_path
+    ck.remove_stale_temporaries(p)
+    if not p.is_file():
+        return None
+    try:
+        state = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - any decoding failure means a bad file
+        raise ValueError(f"checkpoint {p} is unreadable ({e}); delete it to start over") from e
+    if not isinstance(state, dict) or state.get("format") != "comgs_dr.completion_train/1":
+        raise ValueError(f"checkpoint {p} is not a train-completion checkpoint")
+    mine = _config_key(cfg)
+    diff = sorted(k for k in set(mine) | set(state["config"])
+                  if mine.get(k) != state["config"].get(k))
+    if diff:
+        raise ValueError(f"checkpoint {p} was made with other settings ({', '.join(diff)}); "
+                         "use them, another --out, or delete it to start over")
+    return state
 
 
 def _label_of(name: str) -> int:
@@ -231,44 +286,62 @@ def train(cfg: TrainCompletionConfig, progress: bool = True, command: str | None
         val_batches = [val.batch(cfg.batch, "zero") for _ in range(2)] + \
                       [val.batch(cfg.batch, "ev") for _ in range(2)]
     budget = cfg.minutes * 60.0
-    t0 = time.perf_counter()
-    hist, step, step1_end = [], 0, None
+    hist, step, step1_end, elapsed = [], 0, None, 0.0
+    resumed = _load_checkpoint(cfg)
+    if resumed is not None:
+        model.load_state_dict(resumed["model"])
+        opt.load_state_dict(resumed["opt"])
+        sampler.rng.bit_generator.state = resumed["rng"]
+        torch.set_rng_state(resumed["torch_rng"])
+        hist, step, step1_end, elapsed = (resumed["hist"], resumed["step"], resumed["step1_end"],
+                                          resumed["elapsed"])
+        log.info("resumed %s at step %d (%.0f s)", cfg.checkpoint_path, step, elapsed)
     jsonl_name = f"{Path(cfg.out).stem}.{runlog.LOG_NAME}"     # (time, validation loss) records
-    runlog.rewrite(Path(cfg.out).parent, [], name=jsonl_name)
+    runlog.rewrite(Path(cfg.out).parent, [runlog.record("train-completion", **r) for r in hist],
+                   name=jsonl_name)
+    t0 = time.perf_counter() - elapsed
+    clock = CheckpointClock(cfg.checkpoint_every, cfg.checkpoint_every_s)
     bar = tqdm(total=int(budget), desc="train-completion", unit="s", disable=not progress)
-    while step < cfg.max_steps:
-        el = time.perf_counter() - t0
-        if el >= budget:
-            break
-        mode = "zero" if el < cfg.step1_frac * budget else "ev"
-        if mode == "ev" and step1_end is None:
-            step1_end = step
-        frac = max(el / budget, step / cfg.max_steps)
-        for g in opt.param_groups:
-            g["lr"] = _lr(step, frac, cfg)
-        rgb, nor, msk, tgt, evs, lab = sampler.batch(cfg.batch, mode)
-        out = model(rgb, nor, msk, evs, lab)
-        loss = completion_loss(out.completed, tgt, cfg.height, cfg.width, cfg.lowfreq)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        gn = float(torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0))
-        if math.isfinite(loss.item()) and math.isfinite(gn):
-            opt.step()
-        step += 1
-        if step % 100 == 0 or step == 1:
-            with torch.no_grad():
-                vl = [completion_loss(model(*b[:3], b[4], b[5]).completed, b[3], cfg.height,
-                                      cfg.width).item() for b in val_batches]      # per-pixel term
-            rec = {"step": step, "time_s": round(time.perf_counter() - t0, 1), "mode": mode,
-                   "loss": round(loss.item(), 5), "val_ev0": round(float(np.mean(vl[:2])), 5),
-                   "val_ev": round(float(np.mean(vl[2:])), 5), "lr": opt.param_groups[0]["lr"]}
-            hist.append(rec)
-            runlog.append(Path(cfg.out).parent, runlog.record("train-completion", **rec),
-                          name=jsonl_name)
-            bar.set_postfix(loss=rec["loss"], val0=rec["val_ev0"], valev=rec["val_ev"])
-        bar.n = int(min(budget, time.perf_counter() - t0))
-        bar.refresh()
-    bar.close()
+    with stop_signals() as guard:
+        while step < cfg.max_steps:
+            el = time.perf_counter() - t0
+            if el >= budget:
+                break
+            frac = max(el / budget, step / cfg.max_steps)
+            mode = "zero" if frac < cfg.step1_frac else "ev"
+            if mode == "ev" and step1_end is None:
+                step1_end = step
+            for g in opt.param_groups:
+                g["lr"] = _lr(step, frac, cfg)
+            rgb, nor, msk, tgt, evs, lab = sampler.batch(cfg.batch, mode)
+            out = model(rgb, nor, msk, evs, lab)
+            loss = completion_loss(out.completed, tgt, cfg.height, cfg.width, cfg.lowfreq)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            gn = float(torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0))
+            if math.isfinite(loss.item()) and math.isfinite(gn):
+                opt.step()
+            step += 1
+            if step % 100 == 0 or step == 1:
+                with torch.no_grad():
+                    vl = [completion_loss(model(*b[:3], b[4], b[5]).completed, b[3], cfg.height,
+                                          cfg.width).item() for b in val_batches]  # per-pixel term
+                rec = {"step": step, "time_s": round(time.perf_counter() - t0, 1), "mode": mode,
+                       "loss": round(loss.item(), 5), "val_ev0": round(float(np.mean(vl[:2])), 5),
+                       "val_ev": round(float(np.mean(vl[2:])), 5), "lr": opt.param_groups[0]["lr"]}
+                hist.append(rec)
+                runlog.append(Path(cfg.out).parent, runlog.record("train-completion", **rec),
+                              name=jsonl_name)
+                bar.set_postfix(loss=rec["loss"], val0=rec["val_ev0"], valev=rec["val_ev"])
+            if guard.signum is not None or clock.due(step):
+                _save_checkpoint(cfg, model, opt, sampler, step, time.perf_counter() - t0, hist,
+                                 step1_end)
+                clock.mark()
+                guard.raise_if_stopped(step, cfg.checkpoint_path)
+            bar.n = int(min(budget, time.perf_counter() - t0))
+            bar.refresh()
+        bar.close()
+        _save_checkpoint(cfg, model, opt, sampler, step, time.perf_counter() - t0, hist, step1_end)
     out_path = C.save_weights(model, cfg.out)
     info = {"command": command or " ".join(sys.argv), "steps": step, "step1_steps": step1_end,
             "train_seconds": round(time.perf_counter() - t0, 1), "data_seconds": round(t_data, 1),
@@ -308,6 +381,10 @@ def add_arguments(ap) -> None:
                          "(none, default: the shipped weights)")
     ap.add_argument("--seed", type=int, default=d.seed)
     ap.add_argument("--threads", type=int, default=d.threads)
+    ap.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every, metavar="STEPS",
+                    help="checkpoint every this many steps (and on SIGINT/SIGTERM)")
+    ap.add_argument("--checkpoint-every-s", type=float, default=d.checkpoint_every_s,
+                    metavar="SECONDS", help="... and every this many seconds of wall time")
     ap.add_argument("--quiet", action="store_true")
 
 
@@ -321,7 +398,8 @@ def run_from_args(args) -> int:
         max_steps=args.max_steps, batch=args.batch, lr=args.lr, base_channels=args.channels,
         lowfreq=args.lowfreq,
         prior=args.prior,
-        seed=args.seed, threads=args.threads)
+        seed=args.seed, threads=args.threads, checkpoint_every=args.checkpoint_every,
+        checkpoint_every_s=args.checkpoint_every_s)
     info = train(cfg, progress=not args.quiet, command=" ".join(sys.argv))
     last = info["history"][-1] if info["history"] else {}
     print(f"saved {cfg.out}: {info['steps']} steps in {info['train_seconds']} s "

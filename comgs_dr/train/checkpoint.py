@@ -3,7 +3,10 @@
 One format for every trainer: ``p_<name>`` the parameters, ``m_/v_/t_<name>`` the Adam
 moments and step counts of the optimised ones, ``state`` a JSON document carrying
 ``format`` (checked on load), the iteration, the log and the config. Files are written
-through a temporary file and ``os.replace``, so an interrupted run never leaves a torn file.
+through a temporary file and ``os.replace``, so an interrupted run never leaves a torn file:
+a write that fails (full disk, unwritable folder) raises an ``OSError`` naming the file and
+keeps the previous checkpoint; the temporary files a SIGKILL leaves behind are removed when
+the checkpoint is next loaded.
 """
 from __future__ import annotations
 
@@ -21,17 +24,35 @@ CKPT_NAME = "checkpoint.npz"
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write via a temporary file in the same folder + os.replace (never a torn file)."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    tmp = None
     try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except OSError as e:
+        _drop(tmp)
+        kept = " (the previous version is kept)" if path.exists() else ""
+        raise OSError(e.errno, f"cannot write {path}: {e.strerror or e}{kept}") from e
     except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        _drop(tmp)
         raise
+
+
+def _drop(tmp) -> None:
+    if tmp is not None and os.path.exists(tmp):
+        os.unlink(tmp)
+
+
+def remove_stale_temporaries(path: Path) -> int:
+    """Delete ``<path>.*.tmp`` files (what a killed atomic write leaves); returns how many."""
+    path = Path(path)
+    stale = list(path.parent.glob(path.name + ".*.tmp")) if path.parent.is_dir() else []
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return len(stale)
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -64,6 +85,7 @@ def load_checkpoint(path: Path, fmt: str):
     """(arrays {name: ndarray}, moments {name: (t, m, v)}, state) or None if ``path`` is absent.
     ValueError (naming the file) if it is unreadable or of another format."""
     path = Path(path)
+    remove_stale_temporaries(path)
     if not path.exists():
         return None
     try:

@@ -8,8 +8,9 @@ A trainer provides ``iteration``, ``elapsed`` (training seconds so far, restored
 best state, ``snapshot() -> state`` / ``restore(state)``: then every evaluation that returns
 ``psnr_select`` (a PSNR on *training* views, so the test views never choose the state) and
 beats the best so far is snapshotted (:class:`BestState`). The config gives
-``iterations``, ``log_every``, ``eval_every``, ``eval_views``, ``checkpoint_every`` and
-``time_limit_s``. Every record is ``{"iteration", "time_s", **stats[, psnr_test]}``; evaluation
+``iterations``, ``log_every``, ``eval_every``, ``eval_views``, ``checkpoint_every``,
+``checkpoint_every_s`` (wall time) and ``time_limit_s``. SIGINT/SIGTERM during the loop write a
+checkpoint and raise ``interrupt.TrainingInterrupted`` (``train.interrupt``). Every record is ``{"iteration", "time_s", **stats[, psnr_test]}``; evaluation
 time does not count as training time. With a ``jsonl_dir`` each record is also appended to
 ``metrics.jsonl`` as it is taken (``core.runlog``; rewritten from the restored log on resume
 and at the end), so ``comgs report`` can plot a run that is still going.
@@ -26,6 +27,7 @@ from tqdm.auto import tqdm
 
 from comgs_dr.core import runlog
 from comgs_dr.train.checkpoint import atomic_write_text
+from comgs_dr.train.interrupt import CheckpointClock, stop_signals
 
 LOG_NAME = "train_log.json"
 
@@ -87,11 +89,23 @@ def run_loop(trainer, cfg, desc: str, progress: bool = True, log_dir: Path | Non
     stage = stage or desc
     if jsonl_dir is not None:      # a resumed run drops the records after its checkpoint
         runlog.rewrite(jsonl_dir, runlog.from_train_log(stage, trainer.log))
+    with stop_signals() as guard:
+        return _loop(trainer, cfg, desc, progress, log_dir, best, jsonl_dir, stage, guard)
+
+
+def _save(trainer, log_dir) -> None:
+    trainer.checkpoint()
+    if log_dir is not None:
+        write_log(log_dir, trainer.log, indent=None)
+
+
+def _loop(trainer, cfg, desc, progress, log_dir, best, jsonl_dir, stage, guard) -> bool:
     bar = tqdm(total=cfg.iterations, initial=trainer.iteration, desc=desc, unit="it",
                dynamic_ncols=True, disable=not progress)
     t0 = time.perf_counter() - trainer.elapsed
     stopped_early = False
     extra = getattr(trainer, "log_fields", dict)
+    clock = CheckpointClock(cfg.checkpoint_every, getattr(cfg, "checkpoint_every_s", None))
     while trainer.iteration < cfg.iterations:
         stats = trainer.step()
         trainer.elapsed = time.perf_counter() - t0
@@ -111,10 +125,13 @@ def run_loop(trainer, cfg, desc: str, progress: bool = True, log_dir: Path | Non
             bar.set_postfix(loss=f"{stats['loss']:.4f}",
                             psnr=f"{rec.get('psnr_test', stats['psnr_train']):.2f}", **extra())
         bar.update(1)
-        if it % cfg.checkpoint_every == 0:
-            trainer.checkpoint()
-            if log_dir is not None:
-                write_log(log_dir, trainer.log, indent=None)
+        if guard.signum is not None:
+            bar.close()
+            _save(trainer, log_dir)
+            guard.raise_if_stopped(it, getattr(trainer, "checkpoint_path", None))
+        if clock.due(it):
+            _save(trainer, log_dir)
+            clock.mark()
         if cfg.time_limit_s is not None and trainer.elapsed > cfg.time_limit_s:
             stopped_early = True
             break
