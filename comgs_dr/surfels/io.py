@@ -244,7 +244,8 @@ def load_ply(path, *, return_meta: bool = False, material_encoding: str = "auto"
     bad = []
     for p in used:
         try:
-            a = np.asarray(el[p]).astype(np.float32)            # [N]
+            with np.errstate(over="ignore"):                     # |x| > 3.4e38 -> inf, reported below
+                a = np.asarray(el[p]).astype(np.float32)        # [N]
         except (ValueError, TypeError) as e:
             raise SurfelFileError(f"{path}: property '{p}' is not numeric ({e})") from e
         nbad = int(np.count_nonzero(~np.isfinite(a)))
@@ -252,7 +253,8 @@ def load_ply(path, *, return_meta: bool = False, material_encoding: str = "auto"
             bad.append(f"'{p}' ({nbad} of {n} rows)")
         cols[p] = a
     if bad:
-        raise SurfelFileError(f"{path}: non-finite values (NaN/Inf) in properties {', '.join(bad)}")
+        raise SurfelFileError(f"{path}: non-finite values (NaN/Inf, or beyond float32's "
+                              f"±3.4e38) in properties {', '.join(bad)}")
 
     def stack(ps):
         return np.stack([cols[p] for p in ps], 1)
@@ -336,7 +338,23 @@ def save_ply(params: SurfelParams, path, *, color_space: str = "srgb") -> None:
     el = plyfile.PlyElement.describe(arr, "vertex")
     comments = [f"{FORMAT_TAG} format={FORMAT_VERSION}", f"{FORMAT_TAG} color_space={color_space}",
                 f"{FORMAT_TAG} materials=activated (albedo linear, roughness, metallic in [0,1])"]
-    plyfile.PlyData([el], text=False, byte_order="<", comments=comments).write(path)
+    _atomic_write(path, plyfile.PlyData([el], text=False, byte_order="<", comments=comments).write)
+
+
+def _atomic_write(path: str, write) -> None:
+    """``write(tmp)`` next to ``path``, then rename: a failed write (disk full, interrupt)
+    leaves any previous file intact and no partial file behind."""
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise FileNotFoundError(f"save_ply({path}): folder {folder} does not exist")
+    tmp = os.path.join(folder, f".{os.path.basename(path)}.{os.getpid()}.tmp")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
 
 
 # --------------------------------------------------------------------- .splat
