@@ -57,3 +57,48 @@ def error_chain_text(exc: BaseException) -> str:
         parts.append(str(exc))
         exc = exc.__cause__ or exc.__context__
     return "\n".join(parts)
+
+
+def make_tiny_object_dataset(root):
+    """A two-coloured capsule under a sky with a bright spot: 16 train + 4 test views, 32 px
+    (NeRF-synthetic folder ``root/ds``, returned)."""
+    import mitsuba as mi
+    import trimesh
+
+    from comgs_dr.data import synthetic as syn
+    trimesh.creation.capsule(height=0.8, radius=0.45).export(root / "obj.ply")
+    sky = np.full((16, 32, 3), 0.6, np.float32)
+    sky[2:5, 4:8] = 20.0
+    mi.Bitmap(sky).write(str(root / "sky.exr"))
+    cfg = syn.ObjectDatasetConfig(mesh=root / "obj.ply", envmap=root / "sky.exr", out_dir=root / "ds",
+                                  n_train=16, n_test=4, resolution=32, spp=16, spp_aov=2, max_depth=3,
+                                  relight_envmaps=(), texture=None, up_axis="z", base_color=(0.7, 0.3, 0.2))
+    syn.make_object_dataset(cfg, progress=False)
+    return root / "ds"
+
+
+def make_tiny_step1_run(root, n_surfels: int = 3000):
+    """A 32 px dataset of the demo object + mesh-sampled surfels written as a finished
+    step-1 run; returns (run folder, sky map path)."""
+    import json
+
+    import trimesh
+
+    from comgs_dr.data.procedural import procedural_object, procedural_sky
+    from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
+    from comgs_dr.surfels import from_mesh, save_ply
+    from comgs_dr.train.run import write_run_info
+    mesh = procedural_object(root / "object.ply")
+    sky = procedural_sky(root / "sky.exr", width=64)
+    ds = root / "data"
+    make_object_dataset(ObjectDatasetConfig(
+        mesh=mesh, envmap=sky, out_dir=ds, n_train=10, n_test=2, resolution=32, spp=4,
+        spp_aov=2, relight_envmaps=(), up_axis="z", texture=None,
+        base_color=(0.7, 0.45, 0.3)), progress=False)
+    meta = json.loads((ds / "meta.json").read_text())
+    tm = trimesh.load(mesh, force="mesh")
+    tm.apply_transform(np.asarray(meta["object"]["object_to_world"]))
+    run = root / "run"
+    write_run_info(run, ds, "object", 1, False)
+    save_ply(from_mesh(tm, n_surfels, seed=0), str(run / "point_cloud.ply"))
+    return run, sky

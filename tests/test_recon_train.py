@@ -5,6 +5,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from conftest import make_tiny_object_dataset
+
 from comgs_dr import cli
 from comgs_dr.data.load import load_dataset
 from comgs_dr.stages.reconstruct import CKPT_FORMAT, RadianceConfig, Trainer, train_radiance
@@ -15,18 +17,7 @@ trimesh = pytest.importorskip("trimesh")
 
 @pytest.fixture(scope="module")
 def tiny_dataset(tmp_path_factory):
-    """A two-coloured capsule under a sky with a bright spot: 16 train + 4 test views, 32 px."""
-    from comgs_dr.data import synthetic as syn
-    root = tmp_path_factory.mktemp("tiny")
-    trimesh.creation.capsule(height=0.8, radius=0.45).export(root / "obj.ply")
-    sky = np.full((16, 32, 3), 0.6, np.float32)
-    sky[2:5, 4:8] = 20.0
-    mi.Bitmap(sky).write(str(root / "sky.exr"))
-    cfg = syn.ObjectDatasetConfig(mesh=root / "obj.ply", envmap=root / "sky.exr", out_dir=root / "ds",
-                                  n_train=16, n_test=4, resolution=32, spp=16, spp_aov=2, max_depth=3,
-                                  relight_envmaps=(), texture=None, up_axis="z", base_color=(0.7, 0.3, 0.2))
-    syn.make_object_dataset(cfg, progress=False)
-    return root / "ds"
+    return make_tiny_object_dataset(tmp_path_factory.mktemp("tiny"))
 
 
 def _cfg(**kw):

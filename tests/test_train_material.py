@@ -4,32 +4,13 @@ import json
 
 import numpy as np
 import pytest
+from conftest import make_tiny_step1_run
 
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     """A 32 px dataset of the demo object + mesh-sampled surfels as a step-1 run."""
-    import trimesh
-
-    from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
-    from comgs_dr.data.procedural import procedural_object, procedural_sky
-    from comgs_dr.surfels import from_mesh, save_ply
-    from comgs_dr.train.run import write_run_info
-    root = tmp_path_factory.mktemp("step2")
-    mesh = procedural_object(root / "object.ply")
-    sky = procedural_sky(root / "sky.exr", width=64)
-    ds = root / "data"
-    make_object_dataset(ObjectDatasetConfig(
-        mesh=mesh, envmap=sky, out_dir=ds, n_train=10, n_test=2, resolution=32, spp=4,
-        spp_aov=2, relight_envmaps=(), up_axis="z", texture=None,
-        base_color=(0.7, 0.45, 0.3)), progress=False)
-    meta = json.loads((ds / "meta.json").read_text())
-    tm = trimesh.load(mesh, force="mesh")
-    tm.apply_transform(np.asarray(meta["object"]["object_to_world"]))
-    run = root / "run"
-    write_run_info(run, ds, "object", 1, False)
-    save_ply(from_mesh(tm, 3000, seed=0), str(run / "point_cloud.ply"))
-    return run, sky
+    return make_tiny_step1_run(tmp_path_factory.mktemp("step2"))
 
 
 def _cfg(**kw):
