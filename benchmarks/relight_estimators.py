@@ -51,6 +51,7 @@ def main(argv=None) -> int:
 
     import comgs_dr
     from comgs_dr.core.colorspace import display_composite, srgb_encode
+    from comgs_dr.core.exr import read_image
     from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
     from comgs_dr.eval.metrics import psnr
     from comgs_dr.surfels import from_mesh
@@ -80,7 +81,7 @@ def main(argv=None) -> int:
     from comgs_dr.data.load import load_dataset
     dset = load_dataset(ds)
     for v in dset.test[:args.views]:
-        gt = np.asarray(mi.Bitmap(str(ds / "test_relight" / stem / f"{Path(v.name).name}.exr")), np.float64)
+        gt = read_image(ds / "test_relight" / stem / f"{Path(v.name).name}.exr").astype(np.float64)
         a = gt[..., 3:4]
         gts.append(a * srgb_encode(np.clip(gt[..., :3] / np.maximum(a, 1e-6), 0, 1)))
         sd = v.camera.sensor_dict()

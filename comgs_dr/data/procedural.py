@@ -8,11 +8,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import mitsuba as mi
 import numpy as np
 import trimesh
 
 from comgs_dr.data.synthetic import ObjectDatasetConfig
+from comgs_dr.lighting.envmap import write_exr
 
 
 def procedural_object(path: Path) -> Path:
@@ -73,8 +73,7 @@ def procedural_sky(path: Path, width: int = 256) -> Path:
     img = np.where(d[..., 2:3] > 0, sky, ground)
     sun = np.array([np.cos(0.7) * np.cos(0.8), np.cos(0.7) * np.sin(0.8), np.sin(0.7)])
     img = img + 400.0 * (d @ sun > np.cos(np.radians(3.0)))[..., None] * np.array([1.0, 0.95, 0.85])
-    mi.Bitmap(img.astype(np.float32), pixel_format=mi.Bitmap.PixelFormat.RGB).write(str(path))
-    return path
+    return write_exr(path, img.astype(np.float32), "equirect")
 
 
 def _directions(width: int) -> np.ndarray:
@@ -95,8 +94,7 @@ def procedural_studio(path: Path, width: int = 256) -> Path:
     key = np.array([np.cos(0.78) * np.cos(-2.2), np.cos(0.78) * np.sin(-2.2), np.sin(0.78)])
     cap = d @ key > np.cos(np.radians(25.0))
     img = img + 4.0 * cap[..., None] * np.array([0.85, 0.9, 1.0])
-    mi.Bitmap(img.astype(np.float32), pixel_format=mi.Bitmap.PixelFormat.RGB).write(str(path))
-    return path
+    return write_exr(path, img.astype(np.float32), "equirect")
 
 
 def procedural_object_yup(path: Path) -> Path:

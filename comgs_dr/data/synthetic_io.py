@@ -8,6 +8,7 @@ import mitsuba as mi
 import numpy as np
 from PIL import Image
 
+from comgs_dr.core import exr
 from comgs_dr.core.colorspace import srgb_encode
 from comgs_dr.core.variant import set_variant
 
@@ -140,8 +141,5 @@ def write_png(path, rgba: np.ndarray) -> None:
 
 
 def write_exr(path, arr: np.ndarray) -> None:
-    """Float32 EXR; 1 channel -> Y, 3 -> RGB, 4 -> RGBA."""
-    arr = np.ascontiguousarray(arr, dtype=np.float32)
-    if arr.ndim == 2:
-        arr = arr[..., None]
-    mi.Bitmap(arr).write(str(path))
+    """Float32 EXR (``core.exr``, atomic); 1 channel -> Y, 3 -> RGB, 4 -> RGBA."""
+    exr.write_image(path, arr)

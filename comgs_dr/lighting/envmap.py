@@ -25,6 +25,7 @@ import mitsuba as mi
 import numpy as np
 from scipy.ndimage import maximum_filter
 
+from comgs_dr.core import exr
 from comgs_dr.core import octahedral as octa
 from comgs_dr.core.colorspace import LUMA
 from comgs_dr.core.equirect import (
@@ -100,12 +101,9 @@ def read_envmap_file(path) -> tuple[np.ndarray, str]:
     NaN/Inf or negative values raise ValueError naming the file and the count.
     """
     p = Path(path)
-    bmp = load_envmap(p)
-    meta = mi.Bitmap(str(p)).metadata() if p.suffix.lower() == ".exr" else None
-    arr = np.array(bmp, copy=True).astype(np.float64)[..., :3]
-    layout = None
-    if meta is not None and "layout" in meta:
-        layout = str(meta["layout"])
+    rgb, attrs = _read_checked(p)
+    arr = rgb.astype(np.float64)
+    layout = attrs.get("layout")
     if layout is None:
         h, w = arr.shape[:2]
         if w == 2 * h:
@@ -120,16 +118,10 @@ def read_envmap_file(path) -> tuple[np.ndarray, str]:
 
 def write_exr(path, img: np.ndarray, layout: str) -> Path:
     """Write a linear RGB float EXR with ``layout`` (and our conventions) in its metadata."""
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    bmp = mi.Bitmap(np.ascontiguousarray(img, np.float32))
-    meta = bmp.metadata()
-    meta["layout"] = layout
-    meta["convention"] = ("octahedral: d.xy/|d|_1, lower hemisphere folded, Z-up"
-                          if layout == "octahedral" else
-                          "equirect: u=0.5-atan2(y,x)/2pi, v=acos(z)/pi, Z-up")
-    bmp.write(str(p))
-    return p
+    conv = ("octahedral: d.xy/|d|_1, lower hemisphere folded, Z-up" if layout == "octahedral"
+            else "equirect: u=0.5-atan2(y,x)/2pi, v=acos(z)/pi, Z-up")
+    return exr.write_image(path, np.asarray(img)[..., :3],
+                           {"layout": layout, "convention": conv})
 
 
 # ---------------------------------------------------------------------------------------
@@ -274,6 +266,34 @@ class EnvSampler:
         return pmf * (r * r) / octa.jacobian_uv(uv)
 
 
+def _read_checked(p: Path) -> tuple[np.ndarray, dict]:
+    """(float32 [H, W, 3] radiance, string metadata) of an environment map file: EXR through
+    ``core.exr``, other formats (.hdr, .pfm) through ``mi.Bitmap``. Errors as :func:`load_envmap`."""
+    if not p.is_file():
+        raise FileNotFoundError(f"environment map not found: {p}")
+    attrs = {}
+    try:
+        if p.suffix.lower() == ".exr":
+            arr, attrs = exr.read_image(p), exr.read_attrs(p)
+        else:
+            arr = np.array(mi.Bitmap(str(p)), copy=True)
+    except Exception as e:  # Mitsuba raises RuntimeError with its own wording
+        raise ValueError(f"cannot read environment map {p}: {e}") from e
+    if arr.ndim != 3 or arr.shape[2] not in (3, 4) or min(arr.shape[:2]) < 2:
+        raise ValueError(f"environment map {p} must be an RGB(A) image of at least 2x2 "
+                         f"pixels, got shape {arr.shape}")
+    rgb = np.ascontiguousarray(arr[..., :3], np.float32)
+    bad = int(np.count_nonzero(~np.isfinite(rgb)))
+    if bad:
+        raise ValueError(f"environment map {p} has {bad} non-finite (NaN/Inf) values")
+    neg = int(np.count_nonzero(rgb < 0))
+    if neg:
+        warnings.warn(f"environment map {p}: {neg} negative values (most negative "
+                      f"{float(rgb.min()):.3g}) clamped to 0", stacklevel=3)
+        rgb = np.maximum(rgb, 0.0)
+    return rgb, attrs
+
+
 def load_envmap(path):
     """Read an HDR/EXR environment map as a float32 RGB ``mi.Bitmap``, checking its values.
 
@@ -282,25 +302,5 @@ def load_envmap(path):
     compression (DWAA/DWAB, as in Blender's shipped maps) leaves in dark texels, are clamped
     to 0 with a warning that names their count and the most negative one.
     """
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"environment map not found: {p}")
-    try:
-        bmp = mi.Bitmap(str(p))
-    except Exception as e:  # Mitsuba raises RuntimeError with its own wording
-        raise ValueError(f"cannot read environment map {p}: {e}") from e
-    arr = np.array(bmp, copy=False)
-    if arr.ndim != 3 or arr.shape[2] not in (3, 4) or min(arr.shape[:2]) < 2:
-        raise ValueError(f"environment map {p} must be an RGB(A) image of at least 2x2 "
-                         f"pixels, got shape {arr.shape}")
-    bad = int(np.count_nonzero(~np.isfinite(arr[..., :3])))
-    if bad:
-        raise ValueError(f"environment map {p} has {bad} non-finite (NaN/Inf) values")
-    bmp = bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
-    rgb = np.array(bmp, copy=False)
-    neg = int(np.count_nonzero(rgb < 0))
-    if neg:
-        warnings.warn(f"environment map {p}: {neg} negative values (most negative "
-                      f"{float(rgb.min()):.3g}) clamped to 0", stacklevel=2)
-        bmp = mi.Bitmap(np.maximum(rgb, 0.0).astype(np.float32))
-    return bmp
+    rgb, _ = _read_checked(Path(path))
+    return mi.Bitmap(rgb, pixel_format=mi.Bitmap.PixelFormat.RGB)

@@ -13,6 +13,9 @@ Metrics (per view, averaged), when the dataset holds the ground truth that
 * albedo PSNR after per-channel median scale alignment (TensoIR protocol: s_c =
   median(gt_c / pred_c) over covered pixels), computed on sRGB-encoded albedo;
 * normal MAE (degrees) of the shading normals vs ``r_<i>_normal.exr``.
+
+Beside each view's PNG an EXR (:func:`material_layers`) holds the linear RGBA render and the
+G-buffer: depth, normal, albedo, roughness, metallic.
 """
 from __future__ import annotations
 
@@ -25,6 +28,8 @@ import mitsuba as mi
 import numpy as np
 from tqdm import tqdm
 
+from comgs_dr.core import exr
+from comgs_dr.core.cameras import camera_rays
 from comgs_dr.core.colorspace import display_composite, srgb_encode
 from comgs_dr.data.images import write_png8
 from comgs_dr.data.nerf import split_frames
@@ -51,6 +56,35 @@ def _display(x):
     return srgb_encode(np.clip(x, 0.0, 1.0))
 
 
+MATERIAL_ATTRS = {"colour": "linear sRGB (Rec. 709 primaries), premultiplied by A = coverage",
+                  "depth": "ray distance from the near-clip origin, 0 where uncovered",
+                  "normal": "unit world-space shading normal, 0 where uncovered",
+                  "materials": "albedo (linear), roughness, metallic: blended per pixel, "
+                               "not premultiplied, 0 where uncovered"}
+
+
+def material_layers(rgba, pts, geo, sensor) -> dict:
+    """EXR layers of one relit view: '' = linear premultiplied RGBA [H, W, 4] (``rgba``),
+    'depth', 'normal', 'albedo', 'roughness', 'metallic' scattered from the shading points
+    ``pts`` of the covered pixels ``geo['pix_np']`` (0 elsewhere)."""
+    h, w = geo["shape"]
+    pix = geo["pix_np"]
+    dirs, origins = camera_rays(sensor)
+    d = np.asarray(dirs, np.float64).reshape(-1, 3)[pix]                       # [P, 3]
+    o = np.asarray(origins, np.float64).reshape(-1, 3)[pix]
+    x = np.asarray(pts.position, np.float64).T                                 # [P, 3]
+
+    def grid(v):                                                               # [P, c] -> [H, W, c]
+        out = np.zeros((h * w, v.shape[1]))
+        out[pix] = v
+        return out.reshape(h, w, -1)
+    return {"": np.asarray(rgba, np.float64), "depth": grid(((x - o) * d).sum(-1)[:, None]),
+            "normal": grid(np.asarray(geo["n"], np.float64).T),
+            "albedo": grid(np.asarray(pts.albedo, np.float64).T),
+            "roughness": grid(np.asarray(pts.roughness, np.float64)[:, None]),
+            "metallic": grid(np.asarray(pts.metallic, np.float64)[:, None])}
+
+
 def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: int = 256,
                 visibility: str | None = None, indirect: bool | None = None,
                 envmap_scale: float = 1.0, out_dir=None, progress: bool = True,
@@ -61,7 +95,7 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
     ``sop_pbr`` integrator (``sampling='mis'``: env-map + BRDF importance sampling) lit by
     an ``octenvmap`` emitter at the map's full resolution (an equirect map's height, at
     most 1024, unless ``envmap_res``); optional material ``edit`` (whole object or
-    ``edit_mask``); writes PNGs + metrics."""
+    ``edit_mask``); writes PNGs, per-view EXRs (:func:`material_layers`) + metrics."""
     run_dir = Path(run_dir)
     mdir = Path(material_dir) if material_dir else run_dir / "material"
     log = mdir / "train_log.json"
@@ -109,12 +143,15 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
             rgba = mi.render(scene, sensor=i, seed=7)
             img = np.asarray(display_composite(rgba, bg))
             pts, geo = integrator.shading_points(scene, i)
-        write_png8(out / f"{v.name.replace('/', '_')}.png", img)
+        name = v.name.replace('/', '_')
+        write_png8(out / f"{name}.png", img)
+        exr.write_layers(out / f"{name}.exr",
+                         material_layers(rgba, pts, geo, scene.sensors()[i]), MATERIAL_ATTRS)
         rec = {"view": v.name}
         stem = Path(v.name).name
         gt_p = gt_dir / f"{stem}.exr"
         if info["resolution_scale"] == 1 and gt_p.exists():
-            gt = np.asarray(mi.Bitmap(str(gt_p)), np.float64)         # premultiplied linear
+            gt = exr.read_image(gt_p).astype(np.float64)             # premultiplied linear
             a = gt[..., 3:4] if gt.shape[-1] > 3 else np.ones_like(gt[..., :1])
             straight = gt[..., :3] / np.maximum(a, 1e-6)
             gt_disp = a * _display(straight) + (1 - a) * bg
@@ -135,7 +172,7 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
             base = Path(info["data"])
             W = geo["W_np"]
             if "albedo_path" in fr and (base / fr["albedo_path"]).exists():
-                ga = np.asarray(mi.Bitmap(str(base / fr["albedo_path"])), np.float64)
+                ga = exr.read_image(base / fr["albedo_path"]).astype(np.float64)
                 mask = (ga[..., 3] > 0.99) & (W > 0.5)
                 pa = np.zeros_like(ga[..., :3]).reshape(-1, 3)
                 pa[geo["pix_np"]] = np.asarray(pts.albedo).T
@@ -144,7 +181,7 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
                 m3 = mask[..., None]
                 rec["albedo_psnr"] = M.psnr(_display(al) * m3, _display(ga[..., :3]) * m3)
             if "normal_path" in fr and (base / fr["normal_path"]).exists():
-                gn = np.asarray(mi.Bitmap(str(base / fr["normal_path"])), np.float64)
+                gn = exr.read_image(base / fr["normal_path"]).astype(np.float64)
                 mask = (gn[..., 3] > 0.99) & (W > 0.5) if gn.shape[-1] > 3 else (W > 0.5)
                 pn = np.zeros((W.size, 3))
                 pn[geo["pix_np"]] = np.asarray(geo["n"]).T

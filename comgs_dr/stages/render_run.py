@@ -1,4 +1,7 @@
-"""Render a finished step-1 run on its test (or train) views and write metrics."""
+"""Render a finished step-1 run on its test (or train) views and write metrics.
+
+Per view ``render_<views>/<i>.exr`` holds the G-buffer (:func:`gbuffer_layers`) beside the
+display PNGs."""
 from __future__ import annotations
 
 import json
@@ -8,6 +11,8 @@ import mitsuba as mi
 import numpy as np
 from tqdm import tqdm
 
+from comgs_dr.core import exr
+from comgs_dr.core.colorspace import srgb_decode
 from comgs_dr.data.images import write_png8
 from comgs_dr.data.nerf import split_frames
 from comgs_dr.eval import metrics as M
@@ -24,6 +29,27 @@ def _gt_geometry(data_dir: Path, split: str) -> list:
             for fr in split_frames(data_dir, split)]
 
 
+def gbuffer_layers(b: dict, background: float) -> dict:
+    """EXR layers of a ``surfel_gbuffer`` render ``b`` ({target: [H, W, c]}): '' = linear
+    RGB premultiplied by the coverage weight + A = weight (the run's display-sRGB colour,
+    background removed, decoded as ``colorspace.unpremultiplied_to_linear``), 'depth' = ray
+    distance, 'normal' = unit world normal (both 0 where uncovered)."""
+    w = b["weight"].astype(np.float64)                                     # [H, W, 1]
+    cov = w > 1e-4
+    straight = (b["color"] - (1.0 - w) * background) / np.maximum(w, 1e-4)   # [H, W, 3]
+    rgb = np.where(cov, w * srgb_decode(np.maximum(straight, 0.0)), 0.0)
+    n = b["normal"].astype(np.float64)
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = np.where(cov & (norm > 1e-8), n / np.maximum(norm, 1e-8), 0.0)
+    return {"": np.concatenate([rgb, w], -1), "depth": np.where(cov, b["depth_unbiased"], 0.0),
+            "normal": n}
+
+
+GBUFFER_ATTRS = {"colour": "linear sRGB (Rec. 709 primaries), premultiplied by A = coverage",
+                 "depth": "ray distance from the near-clip origin, 0 where uncovered",
+                 "normal": "unit world-space normal, 0 where uncovered"}
+
+
 def render_run(run_dir, views: str = "test", progress: bool = True, max_hits: int = 32) -> dict:
     """Render ``views`` ('test' or 'train'); write images and ``metrics_<views>.json``."""
     run_dir = Path(run_dir)
@@ -36,8 +62,9 @@ def render_run(run_dir, views: str = "test", progress: bool = True, max_hits: in
     if not vs:
         raise ValueError(f"the dataset at {info['data']} has no {views} views")
     params = load_ply(str(ply))
+    bg = 1.0 if data.white_background else 0.0
     scene = gbuffer_scene({"surfels": params}, [v.camera.sensor_dict() for v in vs], max_hits=max_hits,
-                          background=1.0 if data.white_background else 0.0)
+                          background=bg)
     integ = scene.integrator()
     gt_geo = _gt_geometry(Path(info["data"]), views) if info["resolution_scale"] == 1 else []
     out_dir = run_dir / f"render_{views}"
@@ -50,16 +77,16 @@ def render_run(run_dir, views: str = "test", progress: bool = True, max_hits: in
         write_png8(out_dir / f"{i:03d}_color.png", c)
         n_vis = (0.5 * b["normal"] + 0.5 * b["weight"]).clip(0, 1)
         write_png8(out_dir / f"{i:03d}_normal.png", n_vis)
+        exr.write_layers(out_dir / f"{i:03d}.exr", gbuffer_layers(b, bg), GBUFFER_ATTRS)
         rec = {"view": v.name, "psnr": M.psnr(c, v.image), "ssim": M.ssim(c, v.image)}
         if i < len(gt_geo):
             npath, dpath = gt_geo[i]
             mask = v.mask if v.mask is not None else (b["weight"][..., 0] > 0.5).astype(np.float32)
             mask = ((mask > 0.99) & (b["weight"][..., 0] > 0.5)).astype(np.float32)
             if npath is not None and npath.exists():
-                rec["normal_mae_deg"] = M.normal_mae_deg(b["normal"], np.asarray(mi.Bitmap(str(npath)))[..., :3], mask)
+                rec["normal_mae_deg"] = M.normal_mae_deg(b["normal"], exr.read_image(npath)[..., :3], mask)
             if dpath is not None and dpath.exists():
-                d_gt = np.asarray(mi.Bitmap(str(dpath)))
-                d_gt = d_gt[..., 0] if d_gt.ndim == 3 else d_gt
+                d_gt = exr.read_image(dpath)[..., 0]
                 rec.update(M.depth_errors(b["depth_unbiased"][..., 0], d_gt, mask))
         per_view.append(rec)
     keys = [k for k in per_view[0] if k != "view"]
