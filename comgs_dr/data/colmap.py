@@ -10,6 +10,7 @@ i.e. Mitsuba +Y) to +Z, applied to cameras and points alike (recorded in
 """
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -60,7 +61,10 @@ def load_colmap(root, images: str = "images", masks: str | None = None,
     image_dir = root / images
     if not image_dir.is_dir():
         raise DatasetError(f"{image_dir}: image folder not found")
-    regs = sorted((im for im in rec.images.values() if _has_pose(im)), key=lambda im: im.name)
+    try:
+        regs = sorted((im for im in rec.images.values() if _has_pose(im)), key=lambda im: im.name)
+    except UnicodeDecodeError as e:
+        raise DatasetError(f"{model_dir}: an image name is not UTF-8 text ({e})") from None
     if not regs:
         raise DatasetError(f"{model_dir}: the model has no registered images")
 
@@ -81,7 +85,7 @@ def load_colmap(root, images: str = "images", masks: str | None = None,
     mask_paths = _mask_paths(root, masks, [f["name"] for f in frames])
 
     rot, tr, te = aligned_split(frames, up, str(model_dir), test_every)
-    points, colors = _points(rec)
+    points, colors = _points(rec, model_dir)
     if points is not None:
         points = (points @ rot[:3, :3].T).astype(np.float32)
     bg = (1.0, 1.0, 1.0) if white_background else (0.0, 0.0, 0.0)
@@ -108,10 +112,95 @@ def _read_model(model_dir: Path):
         import pycolmap  # heavy: loaded only for COLMAP folders
     except ImportError as e:
         raise ImportError("load_colmap needs pycolmap (pip install pycolmap)") from e
+    if all((model_dir / f).is_file() for f in ("cameras.bin", "images.bin", "points3D.bin")):
+        check_binary_model(model_dir, _param_counts(pycolmap))
     try:
         return pycolmap.Reconstruction(str(model_dir))
-    except Exception as e:  # pycolmap raises ValueError/RuntimeError for bad files
+    except Exception as e:  # pycolmap raises ValueError/RuntimeError/IndexError/MemoryError
         raise DatasetError(f"{model_dir}: cannot read the COLMAP model ({e})") from None
+
+
+def _param_counts(pycolmap) -> dict[int, int]:
+    """{camera model id: number of parameters} of the installed COLMAP."""
+    create = getattr(pycolmap.Camera, "create_from_model_id", None) or pycolmap.Camera.create
+    out = {}
+    for m in pycolmap.CameraModelId.__members__.values():
+        if int(m.value) >= 0:
+            out[int(m.value)] = len(create(1, m, 1.0, 1, 1).params)
+    return out
+
+
+class _BinReader:
+    """Bounds-checked walk over one COLMAP ``.bin`` file (DatasetError naming it)."""
+
+    def __init__(self, path: Path):
+        self.path, self.data, self.pos = path, path.read_bytes(), 0
+
+    def take(self, fmt: str) -> tuple:
+        n = struct.calcsize(fmt)
+        if self.pos + n > len(self.data):
+            raise DatasetError(f"{self.path}: truncated ({len(self.data)} bytes, a record "
+                               f"at byte {self.pos} needs {n} more)")
+        v = struct.unpack_from(fmt, self.data, self.pos)
+        self.pos += n
+        return v
+
+    def skip(self, n: int) -> None:
+        self.fits(1, n, "record")
+        self.pos += n
+
+    def fits(self, count: int, min_size: int, what: str) -> int:
+        left = len(self.data) - self.pos
+        if count * min_size > left:
+            raise DatasetError(f"{self.path}: claims {count} {what}(s) of at least {min_size} "
+                               f"bytes but {left} bytes are left (corrupt or truncated)")
+        return count
+
+    def count(self, min_size: int, what: str) -> int:
+        return self.fits(self.take("<Q")[0], min_size, what)
+
+    def cstring(self) -> None:
+        end = self.data.find(b"\0", self.pos)
+        if end < 0:
+            raise DatasetError(f"{self.path}: truncated (unterminated image name at byte "
+                               f"{self.pos})")
+        self.pos = end + 1
+
+
+def check_binary_model(model_dir: Path, n_params: dict[int, int]) -> None:
+    """Walk a binary COLMAP model's record structure before COLMAP reads it: a corrupted
+    count made COLMAP loop for ~2^63 iterations (a hang) or abort on allocation.
+    ``n_params``: {camera model id: parameter count}. DatasetError naming the file."""
+    r = _BinReader(model_dir / "cameras.bin")
+    for _ in range(r.count(24, "camera")):
+        _, model = r.take("<Ii")
+        if model not in n_params:
+            raise DatasetError(f"{r.path}: unknown camera model id {model} at byte {r.pos - 4}")
+        r.take("<QQ")
+        r.skip(8 * n_params[model])
+    r = _BinReader(model_dir / "images.bin")
+    for _ in range(r.count(73, "image")):
+        r.take("<I7dI")
+        r.cstring()
+        r.skip(24 * r.count(24, "2D point"))
+    r = _BinReader(model_dir / "points3D.bin")
+    for _ in range(r.count(51, "3D point")):
+        r.take("<Q3d3Bd")
+        r.skip(8 * r.count(8, "track element"))
+    if (model_dir / "rigs.bin").is_file():
+        r = _BinReader(model_dir / "rigs.bin")
+        for _ in range(r.count(8, "rig")):
+            _, n_sensors = r.take("<II")
+            if n_sensors:
+                r.take("<iI")
+                for _ in range(r.fits(n_sensors - 1, 9, "rig sensor")):
+                    if r.take("<iIB")[2]:
+                        r.skip(56)
+    if (model_dir / "frames.bin").is_file():
+        r = _BinReader(model_dir / "frames.bin")
+        for _ in range(r.count(68, "frame")):
+            n_data = r.take("<II7dI")[-1]
+            r.skip(16 * r.fits(n_data, 16, "frame data id"))
 
 
 def _has_pose(im) -> bool:
@@ -159,11 +248,16 @@ def _distortion_shift(cam, fx, fy, cx, cy) -> float:
     return float(d.max()) if np.all(np.isfinite(d)) else float("inf")
 
 
-def _points(rec) -> tuple[np.ndarray | None, np.ndarray | None]:
+def _points(rec, model_dir: Path) -> tuple[np.ndarray | None, np.ndarray | None]:
     pts = [p for _, p in sorted(rec.points3D.items(), key=lambda kv: kv[0])]  # by id
     if not pts:
         return None, None
     xyz = np.array([p.xyz for p in pts], np.float64)                    # [P, 3]
+    with np.errstate(over="ignore"):
+        bad = int(np.count_nonzero(~np.isfinite(xyz.astype(np.float32)).all(1)))
+    if bad:
+        raise DatasetError(f"{model_dir}: {bad} of {len(xyz)} 3D points have non-finite or "
+                           "out-of-range coordinates (corrupt points3D file)")
     rgb = np.array([p.color for p in pts], np.float32) / 255.0          # [P, 3]
     return xyz, rgb
 

@@ -112,6 +112,9 @@ Intrinsics = Callable[[int, int], tuple[float, float, float, float]]
 
 def scaled_intrinsics(fx, fy, cx, cy, ref_w, ref_h, where: str) -> Intrinsics:
     """Intrinsics given for a (ref_w, ref_h) image, rescaled to the actual image size."""
+    if not (np.isfinite([ref_w, ref_h]).all() and ref_w > 0 and ref_h > 0):
+        raise DatasetError(f"{where}: calibrated image size {ref_w}x{ref_h} is not positive")
+
     def at(w: int, h: int):
         sx, sy = w / ref_w, h / ref_h
         if abs(sx - sy) > 0.01 * max(sx, sy):

@@ -50,10 +50,14 @@ def load_llff(root, resolution_scale: int = 1, test_every: int = 8, images: str 
         raise DatasetError(f"{pb_path}: file not found")
     try:
         pb = np.load(pb_path, allow_pickle=False)
-    except (OSError, ValueError) as e:
-        raise DatasetError(f"{pb_path}: unreadable ({e})") from None
-    if pb.ndim != 2 or pb.shape[1] != 17 or len(pb) == 0:
-        raise DatasetError(f"{pb_path}: expected an [N, 17] array with N >= 1, got {pb.shape}")
+    except Exception as e:  # noqa: BLE001 - a damaged .npy header raises SyntaxError, EOFError, ...
+        raise DatasetError(f"{pb_path}: not a readable .npy array ({type(e).__name__}: {e})") \
+            from None
+    if not isinstance(pb, np.ndarray) or pb.ndim != 2 or pb.shape[1] != 17 or len(pb) == 0:
+        raise DatasetError(f"{pb_path}: expected an [N, 17] array with N >= 1, got "
+                           f"{getattr(pb, 'shape', type(pb).__name__)}")
+    if pb.dtype.kind not in "fiu":
+        raise DatasetError(f"{pb_path}: expected real numbers, got dtype {pb.dtype}")
     folder = _image_folder(root, images)
     files = list_images(folder)
     if len(files) != len(pb):

@@ -142,13 +142,19 @@ def _intrinsics(c: dict, where: str):
         c = {key: float(v) for key, v in c.items()}
     except (TypeError, ValueError) as e:
         raise DatasetError(f"{where}: non-numeric camera intrinsics ({e})") from None
+    bad = [key for key, v in c.items() if not math.isfinite(v)]
+    if bad:
+        raise DatasetError(f"{where}: non-finite camera intrinsics {bad}")
+    if any(c.get(key, 1.0) < 1.0 for key in ("w", "h")):
+        raise DatasetError(f"{where}: image size w={c.get('w')}, h={c.get('h')} must be >= 1")
     if any(abs(c.get(key, 0.0)) > 1e-6 for key in _DISTORTION_KEYS):
         raise DatasetError(f"{where}: distorted camera (non-zero {'/'.join(_DISTORTION_KEYS)});"
                            " undistort the images first (e.g. colmap image_undistorter)")
     if "fl_x" not in c and "camera_angle_x" not in c:
         raise DatasetError(f"{where}: needs 'camera_angle_x' or 'fl_x'")
-    if "camera_angle_x" in c and not 0.0 < c["camera_angle_x"] < math.pi:
-        raise DatasetError(f"{where}: camera_angle_x={c['camera_angle_x']} is not in (0, pi)")
+    for key in ("camera_angle_x", "camera_angle_y"):
+        if key in c and not 0.0 < c[key] < math.pi:
+            raise DatasetError(f"{where}: {key}={c[key]} is not in (0, pi)")
 
     def at(w0: int, h0: int):
         w, h = (c["w"], c["h"]) if "w" in c and "h" in c else (w0, h0)

@@ -74,8 +74,11 @@ class Camera:
                 f"{where}: fx={fx:.4g} and fy={fy:.4g} differ by more than "
                 f"{FOCAL_TOLERANCE:.0%}; Mitsuba's perspective sensor has square pixels only "
                 "(resample the images to square pixels)")
-        return cls(to_world, width, height, math.degrees(2.0 * math.atan(0.5 * width / fx)),
-                   0.5 - cx / width, 0.5 - cy / height)
+        fov = math.degrees(2.0 * math.atan(0.5 * width / fx))
+        if not 0.0 < fov < 180.0:    # fx vanishing (e.g. 1e-300) next to the width
+            raise DatasetError(f"{where}: focal length fx={fx:.4g} px gives a {fov:.6g}° field "
+                               f"of view for a {width} px wide image (expected (0, 180))")
+        return cls(to_world, width, height, fov, 0.5 - cx / width, 0.5 - cy / height)
 
     # ------------------------------------------------------------------ intrinsics
     @property
