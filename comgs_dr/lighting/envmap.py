@@ -268,7 +268,8 @@ class EnvSampler:
 
 def _read_checked(p: Path) -> tuple[np.ndarray, dict]:
     """(float32 [H, W, 3] radiance, string metadata) of an environment map file: EXR through
-    ``core.exr``, other formats (.hdr, .pfm) through ``mi.Bitmap``. Errors as :func:`load_envmap`."""
+    ``core.exr``, other formats (.hdr, .pfm) through ``mi.Bitmap``. Errors as
+    :func:`load_envmap`."""
     if not p.is_file():
         raise FileNotFoundError(f"environment map not found: {p}")
     attrs = {}

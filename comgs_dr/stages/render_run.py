@@ -84,7 +84,8 @@ def render_run(run_dir, views: str = "test", progress: bool = True, max_hits: in
             mask = v.mask if v.mask is not None else (b["weight"][..., 0] > 0.5).astype(np.float32)
             mask = ((mask > 0.99) & (b["weight"][..., 0] > 0.5)).astype(np.float32)
             if npath is not None and npath.exists():
-                rec["normal_mae_deg"] = M.normal_mae_deg(b["normal"], exr.read_image(npath)[..., :3], mask)
+                n_gt = exr.read_image(npath)[..., :3]
+                rec["normal_mae_deg"] = M.normal_mae_deg(b["normal"], n_gt, mask)
             if dpath is not None and dpath.exists():
                 d_gt = exr.read_image(dpath)[..., 0]
                 rec.update(M.depth_errors(b["depth_unbiased"][..., 0], d_gt, mask))
