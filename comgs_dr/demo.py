@@ -114,12 +114,12 @@ def comparison_figure(comp_gt: Path, renders: dict, names: list[str], scores: di
 
 
 def envmap_figure(true_eq: np.ndarray, est_eq: np.ndarray, width: int = 384) -> Image.Image:
-    """True | estimated equirect maps at the placement (same exposure, Reinhard, sRGB)."""
+    """True | estimated equirect maps at the placement (same exposure, ``colorspace.tonemap``)."""
     scale = 1.0 / max(float(np.percentile(true_eq @ colorspace.LUMA, 90)), 1e-6)
     panels = []
     for label, m in (("true map", true_eq), ("estimated at the placement", est_eq)):
         x = np.clip(m * scale * 0.5, 0, None)
-        img = Image.fromarray(to_u8(colorspace.srgb_encode(x / (1 + x)))).resize(
+        img = Image.fromarray(to_u8(colorspace.tonemap(x))).resize(
             (width, width // 2), Image.BILINEAR)
         canvas = Image.new("RGB", (width, width // 2 + 14), "white")
         canvas.paste(img, (0, 14))

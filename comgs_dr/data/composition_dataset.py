@@ -34,7 +34,7 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 
-from comgs_dr.core.colorspace import srgb_encode
+from comgs_dr.core.colorspace import LUMA, srgb_encode
 from comgs_dr.core.similarity import Similarity, write_placements
 from comgs_dr.core.variant import package_version
 from comgs_dr.data import synthetic as syn
@@ -154,7 +154,7 @@ def sun_direction(bitmap) -> np.ndarray:
     """[3] unit world direction of the brightest texel (Z-up equirect, ENVMAP_TO_WORLD)."""
     a = np.array(bitmap, np.float32)[..., :3]                      # [H, W, 3]
     h, w = a.shape[:2]
-    i, j = np.unravel_index(np.argmax(a @ np.array([0.2126, 0.7152, 0.0722])), (h, w))
+    i, j = np.unravel_index(np.argmax(a @ LUMA), (h, w))
     th, phi = np.pi * (i + 0.5) / h, 2 * np.pi * (0.5 - (j + 0.5) / w)
     return np.array([np.sin(th) * np.cos(phi), np.sin(th) * np.sin(phi), np.cos(th)])
 

@@ -53,6 +53,7 @@ from math import pi
 
 import numpy as np
 
+from comgs_dr.core.colorspace import LUMA
 from comgs_dr.core.equirect import (
     equirect_dir_to_uv_np,
     equirect_directions,
@@ -358,7 +359,7 @@ def irradiance(env, normal) -> float:
     env = _check_map(env, "irradiance")
     h, w = env.shape[:2]
     cos = np.clip(equirect_directions(h, w) @ np.asarray(normal, np.float64), 0.0, None)
-    lum = env @ np.array([0.2126, 0.7152, 0.0722])
+    lum = env @ LUMA
     return float((lum * cos * pixel_solid_angles(h, w)).sum())
 
 

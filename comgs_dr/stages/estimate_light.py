@@ -284,7 +284,8 @@ def write_outputs(result: dict, out_path) -> dict:
 
 def preview_image(result: dict, panel_width: int = 512):
     """PIL image: labelled panels (input LDR, mask, normal, completion per EV, fused HDR
-    Reinhard-tonemapped), two per row, each at most ``panel_width`` wide."""
+    tone-mapped by ``colorspace.tonemap``: Reinhard on luminance), two per row, each at most
+    ``panel_width`` wide."""
     inp = result["input"]
     mask = inp["mask"]
     panels = [("traced input LDR (EV 0)", inp["rgb"]),
@@ -295,7 +296,7 @@ def preview_image(result: dict, panel_width: int = 512):
         panels.append((f"completion EV {ev:g}", result["ldrs"][ev]))
     h = result["hdr"]
     panels.append((f"fused HDR, Reinhard (max {float(h.max()):.3g})",
-                   colorspace.srgb_encode(h / (1.0 + h))))
+                   colorspace.tonemap(h)))
     font = ImageFont.load_default()
     ih, iw = panels[0][1].shape[:2]
     pw = min(panel_width, iw)
