@@ -14,8 +14,9 @@ def psnr(img: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> fl
     return 10 * math.log10(1.0 / max(mse, 1e-12))
 
 
-def ssim(img: np.ndarray, ref: np.ndarray, window: int = 11, sigma: float = 1.5) -> float:
-    """Mean SSIM with a Gaussian window and zero padding (the 3DGS/2DGS evaluation code)."""
+def ssim_map(img: np.ndarray, ref: np.ndarray, window: int = 11, sigma: float = 1.5) -> np.ndarray:
+    """SSIM map [H, W, 3] with a Gaussian window and zero padding (the 3DGS/2DGS evaluation
+    code; away from the border it equals scikit-image's ``structural_similarity``)."""
     x = np.clip(img[..., :3].astype(np.float64), 0, 1)
     y = ref[..., :3].astype(np.float64)
     g = np.exp(-((np.arange(window) - window // 2) ** 2) / (2 * sigma ** 2))
@@ -27,8 +28,12 @@ def ssim(img: np.ndarray, ref: np.ndarray, window: int = 11, sigma: float = 1.5)
     mx, my = blur(x), blur(y)
     sxx, syy, sxy = blur(x * x) - mx * mx, blur(y * y) - my * my, blur(x * y) - mx * my
     c1, c2 = 0.01 ** 2, 0.03 ** 2
-    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-    return float(s.mean())
+    return ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+
+
+def ssim(img: np.ndarray, ref: np.ndarray, window: int = 11, sigma: float = 1.5) -> float:
+    """Mean SSIM over all pixels of :func:`ssim_map` (zero-padded border included, as 3DGS)."""
+    return float(ssim_map(img, ref, window, sigma).mean())
 
 
 def normal_mae_deg(n: np.ndarray, n_gt: np.ndarray, mask: np.ndarray) -> float:
