@@ -46,9 +46,19 @@ class Similarity:
         return Similarity(1.0 / self.scale, rt, -(rt @ self.translation) / self.scale)
 
 
+def _numbers(value, name: str, what: str) -> np.ndarray:
+    """``value`` as a flat float64 array, or ValueError naming the object and the key (for
+    strings, objects, ragged lists or integers beyond the float range)."""
+    try:
+        return np.asarray(value, np.float64).ravel()
+    except (TypeError, ValueError, OverflowError) as e:
+        raise ValueError(f"placement of {name!r}: {what} must be numbers, got {value!r:.80} "
+                         f"({e})") from None
+
+
 def from_matrix(m, name: str = "object") -> Similarity:
     """A [4, 4] (or 16 row-major values) object→world matrix -> Similarity, or ValueError."""
-    a = np.asarray(m, np.float64)
+    a = _numbers(m, name, "'transform'")
     if a.size != 16:
         raise ValueError(f"placement of {name!r}: 'transform' needs 16 numbers (row-major 4×4), "
                          f"got {a.size}")
@@ -102,13 +112,13 @@ def from_entry(name: str, entry) -> Similarity:
         raise ValueError(f"placement of {name!r}: no 'transform' and no location/rotation/scale")
 
     def vec(key, default, n=3):
-        v = np.asarray(entry.get(key, default), np.float64).ravel()
+        v = _numbers(entry.get(key, default), name, repr(key))
         if v.size != n or not np.all(np.isfinite(v)):
             raise ValueError(f"placement of {name!r}: {key!r} needs {n} finite numbers, got {entry.get(key)!r}")
         return v
     loc = vec("location", [0, 0, 0])
     rot = vec("rotation", [0, 0, 0])
-    sc = np.asarray(entry.get("scale", 1.0), np.float64).ravel()
+    sc = _numbers(entry.get("scale", 1.0), name, "'scale'")
     if sc.size not in (1, 3) or not np.all(np.isfinite(sc)) or np.any(sc <= 0):
         raise ValueError(f"placement of {name!r}: 'scale' must be one positive number (or three "
                          f"equal ones), got {entry.get('scale')!r}")
@@ -124,9 +134,9 @@ def read_placements(path) -> dict[str, Similarity]:
     if not p.is_file():
         raise FileNotFoundError(f"placement file not found: {p}")
     try:
-        data = json.loads(p.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"placement file {p}: not valid JSON ({e})") from None
+        data = json.loads(p.read_bytes().decode("utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"placement file {p}: not valid UTF-8 JSON ({e})") from None
     if not isinstance(data, dict) or not data:
         raise ValueError(f"placement file {p}: expected a non-empty object {{name: placement}}")
     out = {}

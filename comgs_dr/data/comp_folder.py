@@ -33,11 +33,62 @@ def read_manifest(comp_dir) -> dict:
     p = Path(comp_dir) / MANIFEST
     if not p.is_file():
         raise FileNotFoundError(f"{p} not found: is {comp_dir} a `comgs compose` folder?")
-    m = json.loads(p.read_text())
-    if m.get("version", 0) > FORMAT_VERSION:
+    m = _read_json(p)
+    version = m.get("version", 0)
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise ValueError(f"{p}: 'version' must be an integer, got {version!r:.40}")
+    if version > FORMAT_VERSION:
         raise ValueError(f"{p}: format version {m['version']}, this comgs_dr reads "
                          f"≤ {FORMAT_VERSION}")
+    _check_manifest(p, m)
     return m
+
+
+def _read_json(p: Path) -> dict:
+    try:
+        d = json.loads(p.read_bytes().decode("utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{p}: not valid UTF-8 JSON ({e})") from None
+    if not isinstance(d, dict):
+        raise ValueError(f"{p}: expected a JSON object, got {type(d).__name__}")
+    return d
+
+
+def _check_manifest(p: Path, m: dict) -> None:
+    """The fields the renderer reads, with their types (ValueError naming the file)."""
+    def matrix(v, what):
+        try:
+            a = np.asarray(v, np.float64)
+        except (TypeError, ValueError, OverflowError):
+            a = None
+        if a is None or a.shape != (4, 4) or not np.isfinite(a).all():
+            raise ValueError(f"{p}: {what} must be a finite 4x4 matrix, got {v!r:.80}")
+
+    scene, objects = m.get("scene"), m.get("objects")
+    if not isinstance(scene, dict) or not isinstance(scene.get("ply"), str):
+        raise ValueError(f"{p}: 'scene' must be an object with a 'ply' path")
+    if "colour_space" in scene and scene["colour_space"] not in ("srgb", "linear"):
+        raise ValueError(f"{p}: scene 'colour_space' must be 'srgb' or 'linear', got "
+                         f"{scene['colour_space']!r:.40}")
+    if not isinstance(objects, dict):
+        raise ValueError(f"{p}: 'objects' must be an object {{name: ...}}")
+    if not isinstance(m.get("shadow_probes", ""), str):
+        raise ValueError(f"{p}: 'shadow_probes' must be a path")
+    if "world_from_source" in m:
+        matrix(m["world_from_source"], "'world_from_source'")
+    for name, o in objects.items():
+        if not isinstance(o, dict):
+            raise ValueError(f"{p}: object {name!r} must be an object")
+        missing = [k for k in ("ply", "envmap", "probes") if not isinstance(o.get(k), str)]
+        if missing:
+            raise ValueError(f"{p}: object {name!r} lacks path(s) {missing}")
+        matrix(o.get("placement"), f"object {name!r} 'placement'")
+        try:
+            b = np.asarray(o.get("bounds"), np.float64)
+        except (TypeError, ValueError, OverflowError):
+            b = None
+        if b is None or b.shape != (2, 3) or not np.isfinite(b).all():
+            raise ValueError(f"{p}: object {name!r} 'bounds' must be [[x, y, z], [x, y, z]]")
 
 
 def integrator_props(comp_dir, manifest: dict, variant: str = "sop",
@@ -110,31 +161,41 @@ def read_cameras(path, world_from_source=None, res=None) -> list[dict]:
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"camera file not found: {p}")
+    d = _read_json(p)
     try:
-        d = json.loads(p.read_text())
         fov = float(np.degrees(float(d["camera_angle_x"])))
         frames = d["frames"]
-    except (KeyError, TypeError, ValueError) as e:
+    except (KeyError, TypeError, ValueError, OverflowError) as e:
         raise ValueError(f"{p}: not a NeRF-synthetic camera file (camera_angle_x, frames[]): "
-                         f"{e}") from e
-    if not frames:
-        raise ValueError(f"{p}: no frames")
+                         f"{e!r}") from None
+    if not 0.0 < fov < 180.0:
+        raise ValueError(f"{p}: camera_angle_x must be in (0, pi) radians, got "
+                         f"{d['camera_angle_x']!r:.40}")
+    if not isinstance(frames, list) or not frames:
+        raise ValueError(f"{p}: 'frames' must be a non-empty list")
     W = np.eye(4) if world_from_source is None else np.asarray(world_from_source, np.float64)
+    if res is not None:
+        w, h = (res, res) if isinstance(res, int) else res
+    elif "w" in d and "h" in d:
+        try:
+            w, h = int(d["w"]), int(d["h"])
+        except (TypeError, ValueError, OverflowError):
+            w = h = 0
+        if w < 1 or h < 1 or (w, h) != (d["w"], d["h"]):
+            raise ValueError(f"{p}: 'w'/'h' must be positive integers, got {d['w']!r:.20}, "
+                             f"{d['h']!r:.20}")
+    else:
+        w = h = None
     out = []
     for i, f in enumerate(frames):
         try:
             m = np.asarray(f["transform_matrix"], np.float64).reshape(4, 4)
             name = Path(str(f["file_path"])).name
-        except (KeyError, ValueError) as e:
-            raise ValueError(f"{p}: frame {i} needs file_path and a 4×4 transform_matrix") from e
+        except (KeyError, TypeError, ValueError, OverflowError) as e:
+            raise ValueError(f"{p}: frame {i} needs file_path and a 4×4 transform_matrix "
+                             f"({e!r:.80})") from None
         if not np.all(np.isfinite(m)):
             raise ValueError(f"{p}: frame {i} ({name}) has a non-finite transform_matrix")
-        if res is not None:
-            w, h = (res, res) if isinstance(res, int) else res
-        elif "w" in d and "h" in d:
-            w, h = int(d["w"]), int(d["h"])
-        else:
-            w = h = None
         out.append({"name": name, "to_world": W @ m @ GL_TO_MITSUBA, "fov_x_deg": fov,
                     "width": w, "height": h})
     return out

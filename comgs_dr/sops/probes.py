@@ -98,14 +98,21 @@ class ProbeSet:
         try:
             with np.load(p, allow_pickle=False) as z:
                 meta = json.loads(str(z["meta"]))
-                if meta.get("version", 0) > FORMAT_VERSION:
-                    raise ValueError(f"probe file {p} has format version {meta['version']}, "
-                                     f"this comgs_dr reads ≤ {FORMAT_VERSION}")
+                if not isinstance(meta, dict):
+                    raise ValueError(f"'meta' is not a JSON object: {meta!r:.40}")
+                version = meta.get("version", 0)
+                if not isinstance(version, int) or version > FORMAT_VERSION:
+                    raise ValueError(f"format version {version!r:.20}, this comgs_dr reads "
+                                     f"≤ {FORMAT_VERSION}")
                 tex = z["texture"]
-                return cls(positions=z["positions"], normals=z["normals"], res=int(z["res"]),
-                           radius=float(z["radius"]), texture=tex if tex.size else None,
+                res, radius = z["res"], z["radius"]
+                if res.shape != () or radius.shape != ():
+                    raise ValueError(f"'res' and 'radius' must be scalars, got shapes "
+                                     f"{res.shape}, {radius.shape}")
+                return cls(positions=z["positions"], normals=z["normals"], res=int(res),
+                           radius=float(radius), texture=tex if tex.size else None,
                            meta=meta)
-        except (KeyError, OSError, json.JSONDecodeError) as e:
-            raise ValueError(f"cannot read probe file {p}: {e}") from e
-        except ValueError as e:
-            raise ValueError(f"bad probe file {p}: {e}") from e
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"bad probe file {p}: {e}") from None
+        except Exception as e:  # noqa: BLE001 - zip/npy decoding raises many types on damage
+            raise ValueError(f"cannot read probe file {p}: {type(e).__name__}: {e}") from None

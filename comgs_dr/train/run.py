@@ -20,11 +20,30 @@ def write_run_info(run_dir: Path, data_dir, preset: str, resolution_scale: int,
         "resolution_scale": resolution_scale, "white_background": white_background}, indent=1))
 
 
+_FIELDS = {"data": str, "preset": str, "resolution_scale": int, "white_background": bool}
+
+
 def read_run_info(run_dir: Path) -> dict:
+    """The checked contents of ``run_dir/run.json`` (ValueError naming the file when it is
+    not a JSON object with ``data``, ``preset``, ``resolution_scale``, ``white_background``
+    of the right types)."""
     p = Path(run_dir) / RUN_FILE
     if not p.exists():
         raise FileNotFoundError(f"{p} not found: is {run_dir} a `comgs reconstruct` run folder?")
-    return json.loads(p.read_text())
+    try:
+        info = json.loads(p.read_bytes().decode("utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{p}: not valid UTF-8 JSON ({e}); re-run `comgs reconstruct` "
+                         "or fix the file") from None
+    if not isinstance(info, dict):
+        raise ValueError(f"{p}: expected a JSON object, got {type(info).__name__}")
+    bad = [f"{k!r} (expected {t.__name__}, got {info.get(k)!r:.60})" for k, t in _FIELDS.items()
+           if type(info.get(k)) is not t]
+    if bad:
+        raise ValueError(f"{p}: missing or mistyped fields {', '.join(bad)}")
+    if info["resolution_scale"] < 1:
+        raise ValueError(f"{p}: resolution_scale must be >= 1, got {info['resolution_scale']}")
+    return info
 
 
 def load_run_dataset(run_dir: Path, info: dict | None = None):
