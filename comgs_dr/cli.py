@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 
 from comgs_dr import set_variant
-from comgs_dr.core.config import add_config_arguments, config_overrides
+from comgs_dr.core.config import add_config_arguments, config_overrides, numeric_problem
 from comgs_dr.data.load import load_dataset
 from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
 from comgs_dr.data.procedural import scene_dataset_config
@@ -287,13 +287,13 @@ def _add_reconstruct(sub) -> None:
 
 def _cmd_reconstruct(args) -> int:
     set_variant(args.variant)
-    data = load_dataset(args.data, white_background=args.white_background,
-                        resolution_scale=args.resolution_scale)
     kw = config_overrides(args, RadianceConfig)
     kw.pop("densify", None)
     if args.densify:
         kw["densify"] = scaled_density_schedule(kw.get("iterations", RadianceConfig.iterations))
-    cfg = RadianceConfig.from_preset(args.preset, **kw)
+    cfg = RadianceConfig.from_preset(args.preset, **kw)      # flags checked before the data
+    data = load_dataset(args.data, white_background=args.white_background,
+                        resolution_scale=args.resolution_scale)
     write_run_info(args.out, args.data, args.preset, args.resolution_scale, args.white_background)
     s = train_radiance(data, args.out, cfg, progress=not args.quiet)
     print(f"step 1 done: {s['iterations']} iterations in {s['train_seconds']:.0f} s, {s['surfels']} surfels, "
@@ -626,6 +626,10 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as e:  # --help (0) or a usage error (2)
         return int(e.code or 0)
+    problem = numeric_problem(parser, args)       # nan/inf/1e309, integers beyond 32 bits
+    if problem:
+        print(f"comgs {args.command}: error: {problem}", file=sys.stderr)
+        return 2
     try:
         return int(args.func(args) or 0)
     except TrainingInterrupted as e:     # SIGINT/SIGTERM: the checkpoint is written

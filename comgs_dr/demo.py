@@ -68,6 +68,17 @@ class DemoConfig:
     seed: int = 0
     progress: bool = True
 
+    def __post_init__(self):
+        """Sizes are checked here, before anything is written (``--res 0`` used to render
+        the procedural inputs first)."""
+        lows = {"resolution": 8, "sfm_points": 0, "seed": 0}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if f.type in (int, "int") and (isinstance(v, bool) or not isinstance(v, int)
+                                           or v < lows.get(f.name, 1)):
+                raise ValueError(f"DemoConfig.{f.name} must be an integer >= "
+                                 f"{lows.get(f.name, 1)}, got {v!r}")
+
 
 PRESETS = {
     "default": DemoConfig(),

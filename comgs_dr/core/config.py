@@ -10,7 +10,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import typing
+
+#: Largest magnitude accepted for an integer flag (sizes and counts become 32-bit values
+#: in Dr.Jit; a larger number is a typo or an attack, never a setting).
+INT_LIMIT = 2 ** 31 - 1
 
 
 def _scalar_type(tp):
@@ -61,3 +66,30 @@ def config_overrides(args: argparse.Namespace, cls) -> dict:
     """The fields of ``cls`` that ``args`` sets (flags left at None are not overrides)."""
     names = {f.name for f in dataclasses.fields(cls)}
     return {k: v for k, v in vars(args).items() if k in names and v is not None}
+
+
+def numeric_problem(parser: argparse.ArgumentParser, args: argparse.Namespace) -> str | None:
+    """The first numeric flag of the chosen (sub)command that no stage can use: a float that
+    is NaN/Inf (``nan``, ``inf``, ``1e309``) or an integer beyond ±``INT_LIMIT``; as
+    ``"argument --flag: ..."``, or None. Range checks specific to a flag stay in the configs."""
+    for action in _chosen_actions(parser, args):
+        if not action.option_strings or action.dest not in vars(args):
+            continue
+        value = getattr(args, action.dest)
+        for v in value if isinstance(value, (list, tuple)) else [value]:
+            flag = "/".join(action.option_strings)
+            if isinstance(v, float) and not math.isfinite(v):
+                return f"argument {flag}: {v!r} is not a finite number"
+            if isinstance(v, int) and not isinstance(v, bool) and abs(v) > INT_LIMIT:
+                return f"argument {flag}: {v} is out of range (|n| <= {INT_LIMIT})"
+    return None
+
+
+def _chosen_actions(parser: argparse.ArgumentParser, args: argparse.Namespace):
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            sub = action.choices.get(getattr(args, action.dest, None) or "")
+            if sub is not None:
+                yield from _chosen_actions(sub, args)
+        else:
+            yield action

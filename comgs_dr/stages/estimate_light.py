@@ -91,6 +91,16 @@ class EstimateConfig:
         if self.colour_space not in (None, "srgb", "linear"):
             raise ValueError(f"EstimateConfig.colour_space must be None, 'srgb' or 'linear', "
                              f"got {self.colour_space!r}")
+        self.panorama_config("srgb").validate()          # width, height, max_hits, ...
+        if isinstance(self.n_lights, bool) or int(self.n_lights) != self.n_lights \
+                or self.n_lights < 0:
+            raise ValueError(f"EstimateConfig.n_lights must be an integer >= 0, got "
+                             f"{self.n_lights!r}")
+        if self.net_resolution is not None and (
+                len(self.net_resolution) != 2
+                or any(isinstance(v, bool) or int(v) != v or v < 1 for v in self.net_resolution)):
+            raise ValueError(f"EstimateConfig.net_resolution must be two integers >= 1 (H, W), "
+                             f"got {self.net_resolution!r}")
 
     def panorama_config(self, colour_space: str):
         return PanoramaConfig(width=self.width, height=self.height, max_hits=self.max_hits,

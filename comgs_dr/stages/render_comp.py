@@ -49,6 +49,12 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
     the metrics dict (written to ``metrics_<variant>.json`` when ``gt_dir`` is given)."""
     if variant not in VARIANTS:
         raise ValueError(f"render-comp: variant must be one of {', '.join(VARIANTS)}, got {variant!r}")
+    sizes = [] if res is None else [res] if isinstance(res, int) else list(res)
+    if len(sizes) > 2 or any(isinstance(v, bool) or not isinstance(v, (int, np.integer))
+                             or v < 1 for v in sizes):
+        raise ValueError(f"render-comp: res must be W or (W, H) with positive integers, got {res!r}")
+    if rays is not None and (isinstance(rays, bool) or int(rays) != rays or rays < 1):
+        raise ValueError(f"render-comp: rays must be an integer >= 1, got {rays!r}")
     comp_dir = Path(comp_dir)
     manifest = comp_folder.read_manifest(comp_dir)
     cams = comp_folder.read_cameras(cameras, manifest.get("world_from_source"), res)
