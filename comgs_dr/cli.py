@@ -33,6 +33,9 @@ from comgs_dr.stages import train_completion
 from comgs_dr.stages.compose import PRESETS as COMPOSE_PRESETS
 from comgs_dr.stages.compose import compose
 from comgs_dr.stages.decompose import MaterialConfig, train_material
+from comgs_dr.stages.export_mesh import METHODS as MESH_METHODS
+from comgs_dr.stages.export_mesh import PRESETS as MESH_PRESETS
+from comgs_dr.stages.export_mesh import MeshConfig, export_mesh
 from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light, write_outputs
 from comgs_dr.stages.reconstruct import (
     PRESETS as RECON_PRESETS,
@@ -316,6 +319,34 @@ def _cmd_render(args) -> int:
     extra = "".join(f", {k} {r[k]:.3f}" for k in ("normal_mae_deg", "depth_rel") if k in r)
     print(f"{args.views}: PSNR {r['psnr']:.2f} dB, SSIM {r['ssim']:.4f}{extra} over {r['views']} views "
           f"-> {args.run}/metrics_{args.views}.json")
+    return 0
+
+
+def _add_export_mesh(sub) -> None:
+    p = sub.add_parser("export-mesh", help="a triangle mesh of a reconstruction (TSDF or Poisson)",
+                       description="TSDF fusion of depth rendered from the training cameras "
+                                   "(2DGS's extraction, with space carving) or screened Poisson "
+                                   "on the surfel centres and normals (pymeshlab). Vertex colours "
+                                   "from the radiance, or the albedo after step 2. Writes the mesh "
+                                   "(.ply/.obj/.glb) and MESH.json.")
+    p.add_argument("run", metavar="RUN_DIR")
+    p.add_argument("--out", required=True, metavar="MESH.ply")
+    p.add_argument("--method", choices=MESH_METHODS, default=None)
+    p.add_argument("--preset", choices=tuple(MESH_PRESETS), default="default")
+    p.add_argument("--resolution", type=int, default=None, metavar="N",
+                   help="TSDF voxels along the longest side; Poisson octree depth log2(N)")
+    add_config_arguments(p, MeshConfig, presets=MESH_PRESETS)
+    p.add_argument("--variant", default="auto")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_export_mesh)
+
+
+def _cmd_export_mesh(args) -> int:
+    set_variant(args.variant)
+    cfg = MeshConfig(**{**MESH_PRESETS[args.preset], **config_overrides(args, MeshConfig)})
+    s = export_mesh(args.run, args.out, cfg, progress=not args.quiet)
+    print(f"{s['mesh']}: {s['vertices']} vertices, {s['faces']} faces ({s['method']}, colour "
+          f"{s['colour']}, watertight {s['watertight']}) in {s['seconds']} s")
     return 0
 
 
@@ -605,7 +636,7 @@ def _cmd_render_comp(args) -> int:
 
 # ----------------------------------------------------------------------------- entry point
 
-_SUBCOMMANDS = (_add_make_dataset, _add_demo, _add_report, _add_reconstruct, _add_render, _add_decompose,
+_SUBCOMMANDS = (_add_make_dataset, _add_demo, _add_report, _add_reconstruct, _add_render, _add_export_mesh, _add_decompose,
                 _add_relight, _add_estimate_light, _add_train_completion, _add_compose,
                 _add_render_comp)
 
