@@ -94,11 +94,20 @@ def load_checkpoint(path: Path, fmt: str):
         files = {k: z[k] for k in z.files if k != "state"}
     except Exception as e:  # noqa: BLE001 - any decoding failure means a bad file
         raise ValueError(f"checkpoint {path} is unreadable ({e}); delete it to start over") from e
+    if not isinstance(state, dict):
+        raise ValueError(f"checkpoint {path}: its state is a JSON {type(state).__name__}, not an "
+                         "object; delete it to start over")
     if state.get("format") != fmt:
         raise ValueError(f"checkpoint {path} has format {state.get('format')!r}, expected {fmt}")
     arrays = {k[2:]: v for k, v in files.items() if k.startswith("p_")}
-    moments = {k[2:]: (files[f"t_{k[2:]}"], v, files[f"v_{k[2:]}"])
-               for k, v in files.items() if k.startswith("m_")}
+    moments = {}
+    for k, v in files.items():
+        if k.startswith("m_"):
+            name = k[2:]
+            if f"t_{name}" not in files or f"v_{name}" not in files:
+                raise ValueError(f"checkpoint {path}: the Adam state of {name!r} is incomplete "
+                                 "(m_ without t_/v_); delete it to start over")
+            moments[name] = (files[f"t_{name}"], v, files[f"v_{name}"])
     return arrays, moments, state
 
 
