@@ -38,6 +38,17 @@ MITSUBA_FROM_LLFF = np.array([[0.0, -1.0, 0.0, 0.0], [-1.0, 0.0, 0.0, 0.0],
 FOCAL_TOLERANCE = 0.01
 #: Largest deviation of a pose's rotation block from orthonormal that is silently repaired.
 RIGID_TOLERANCE = 1e-2
+#: Sensor clip planes × the scene extent. Mitsuba's defaults (0.01 and 1e4) are absolute:
+#: a millimetre-scale scene was clipped away whole (an empty render, no error).
+CLIP_FRACS = (1e-4, 1e4)
+
+
+def clip_planes(extent: float) -> dict:
+    """``near_clip``/``far_clip`` of a sensor for a scene of size ``extent`` (any units)."""
+    e = float(extent)
+    if not (np.isfinite(e) and e > 0):
+        raise ValueError(f"clip_planes: the scene extent must be finite and > 0, got {extent!r}")
+    return {"near_clip": CLIP_FRACS[0] * e, "far_clip": CLIP_FRACS[1] * e}
 
 
 @dataclass
@@ -168,6 +179,10 @@ class SceneData:
     def __post_init__(self):
         if self.bounds is None:
             self.bounds = compute_bounds([v.camera for v in self.train + self.test], self.points)
+
+    def clip_planes(self) -> dict:
+        """Sensor clip planes for this scene's size (:func:`clip_planes` of the bounds)."""
+        return clip_planes(max(float(self.bounds[1]), 1e-6))
 
     @property
     def background(self) -> np.ndarray:

@@ -367,9 +367,12 @@ def compare_maps(est, gt, size: int = 48) -> dict:
     """Scores of an estimated map against the true one (both linear equirect; ``est`` is
     area-resampled to ``gt``'s size): array-of-spheres si-RMSE / angular error (diffuse and
     matte silver), the angle between the dominant lights (``hdr.extract_lights``), and the
-    irradiance ratio E(facing the true dominant light) / E(facing up) of each map."""
+    irradiance ratio E(facing the true dominant light) / E(facing up) of each map.
+    ValueError for an all-zero true map."""
     from comgs_dr.lighting.hdr import extract_lights
     gt = _check_map(gt, "compare_maps gt")
+    if not (gt > 0).any():          # relative scores (nrmse, ratios) are undefined: not inf
+        raise ValueError("compare_maps: the true map is all zero (no light to compare with)")
     est = area_resize_equirect(_check_map(est, "compare_maps est"), *gt.shape[:2])
     mats = ("diffuse", "matte_silver")
     r_est, mask = render_spheres(est, mats, size)

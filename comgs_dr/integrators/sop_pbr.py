@@ -191,8 +191,11 @@ class SopPbrBase(AttachedRender):
             cfg = ShadingConfig(**{**cfg.__dict__, "rays": max(int(spp), 2)})
         vis = self._visibility(scene)
         pbr = self._deferred(scene, env, vis, cfg)
-        pts, geo = pbr.shading_points(sensor)
-        col = shade(pts, env, vis, cfg, int(seed))
+        if dr.width(pbr.geometry(sensor)["pix"]) == 0:
+            col, geo = None, pbr.geometry(sensor)    # nothing covered (e.g. a grazing view)
+        else:
+            pts, geo = pbr.shading_points(sensor)
+            col = shade(pts, env, vis, cfg, int(seed))
         bg = None if self.hide_emitters else env.eval_world(geo["dirs"])
         if alpha is None:
             alpha = sensor.film().base_channels_count() == 4

@@ -192,8 +192,11 @@ def sample_ggx_vndf(u, wo, alpha):
     when ω_i falls below the horizon or cos_o ≤ 0; the returned direction is then
     still finite but must be discarded (the contribution f·cos/pdf is taken as 0)."""
     u = _clamp_u(u)
-    # Stretch ω_o to the hemisphere configuration (α = 1)
-    vh = dr.normalize(mi.Vector3f(alpha * wo.x, alpha * wo.y, dr.maximum(wo.z, 0.0)))
+    # Stretch ω_o to the hemisphere configuration (α = 1); ω_o = −n (nothing left after the
+    # clamp) would normalise a zero vector into NaN: any finite direction does (pdf is 0)
+    v = mi.Vector3f(alpha * wo.x, alpha * wo.y, dr.maximum(wo.z, 0.0))
+    v2 = dr.squared_norm(v)
+    vh = dr.select(v2 > 1e-30, v * dr.rsqrt(dr.maximum(v2, 1e-30)), mi.Vector3f(0.0, 0.0, 1.0))
     lensq = vh.x * vh.x + vh.y * vh.y
     inv_len = dr.rsqrt(dr.maximum(lensq, 1e-20))
     t1 = dr.select(lensq > 1e-14, mi.Vector3f(-vh.y * inv_len, vh.x * inv_len, 0.0),

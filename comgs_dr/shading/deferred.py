@@ -99,8 +99,9 @@ class DeferredPbr:
                 dr.scatter(wts, T * smp.alpha, rid * K + k)
                 return k + 1, T * (1.0 - smp.alpha)
 
-            dr.while_loop((mi.UInt32(0), dr.full(mi.Float, 1.0, P)),
-                          lambda k, T: k < count, body, label="blend weights")
+            if P:   # no covered pixel (e.g. a grazing view): a width-0 loop is an error
+                dr.while_loop((mi.UInt32(0), dr.full(mi.Float, 1.0, P)),
+                              lambda k, T: k < count, body, label="blend weights")
             dr.eval(ids, wts, x, n, d, W)
         geo = {"pix": pix, "pix_np": np.asarray(pix, np.int64), "shape": (h, w), "dirs": ray.d,
                "W": W, "W_np": np.asarray(W).reshape(h, w), "x": x, "n": n, "wo": mi.Vector3f(-d),
@@ -165,13 +166,15 @@ class DeferredPbr:
     def compose_linear(c, geo, alpha: bool = False, background=None):
         """Linear image [H, W, 3] (or [H, W, 4] with ``alpha``): W·c on covered pixels plus
         (1 − W)·``background`` (a ``mi.Color3f`` per pixel [H*W], e.g. the environment seen
-        through it; None = black), alpha = W. Differentiable w.r.t. ``c`` and ``background``."""
+        through it; None = black), alpha = W. Differentiable w.r.t. ``c`` and ``background``.
+        ``c`` None: no covered pixel (the background only)."""
         h, w = geo["shape"]
-        Wp = dr.gather(mi.Float, geo["W"], geo["pix"])
         img = dr.zeros(mi.Color3f, h * w)
-        dr.scatter(img, Wp * c, geo["pix"])
         keep = dr.zeros(mi.Float, h * w)
-        dr.scatter(keep, 1.0, geo["pix"])
+        if c is not None and dr.width(geo["pix"]):
+            Wp = dr.gather(mi.Float, geo["W"], geo["pix"])
+            dr.scatter(img, Wp * c, geo["pix"])
+            dr.scatter(keep, 1.0, geo["pix"])
         cover = geo["W"] * keep                                           # [H*W]
         if background is not None:
             img = img + (1.0 - cover) * background

@@ -121,7 +121,10 @@ def make_visibility(kind: str, *, scene=None, probes: ProbeSet | str | None = No
         if scene is None:
             raise ValueError("visibility 'trace' needs the surfel scene")
         if trace_offset is None or trace_offset <= 0:
-            trace_offset = offset_frac * max(object_size(s.params) for s in scene.shapes())
+            sizes = [object_size(s.params) for s in scene.shapes() if hasattr(s, "params")]
+            if not sizes:
+                raise ValueError("visibility 'trace': the scene has no surfels shape to trace")
+            trace_offset = offset_frac * max(sizes)
         return TraceVisibility(scene, trace_offset, trace_hits)
     if probes is None:
         raise ValueError("visibility 'sops' needs probes (a ProbeSet or a probes.npz file)")

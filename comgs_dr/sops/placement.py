@@ -27,7 +27,10 @@ from scipy.spatial import cKDTree
 
 from comgs_dr.core.cameras import camera_rays
 from comgs_dr.sops.probes import ProbeSet
+from comgs_dr.surfels.params import object_bounds
 from comgs_dr.surfels.scene import gbuffer_scene
+
+CLIP_FRACS = (1e-4, 1e4)    # sensor clip planes × the scene extent (as data.types.CLIP_FRACS)
 
 
 @dataclass(frozen=True)
@@ -60,8 +63,14 @@ class FusedPoints:
 
 def render_geometry(params, cameras, max_hits: int = 32) -> list[dict]:
     """Per camera: {'weight' [H,W], 'depth' [H,W] (unbiased), 'normal' [H,W,3],
-    'origins'/'dirs' [H,W,3]} from the ``surfel_gbuffer`` integrator."""
-    sensors = [c.sensor_dict() for c in cameras]
+    'origins'/'dirs' [H,W,3]} from the ``surfel_gbuffer`` integrator. Clip planes scale
+    with the surfels and cameras (``clip_planes``: a 1 mm object is not clipped away)."""
+    lo, hi = object_bounds(params)
+    centres = np.array([c.center for c in cameras]).reshape(-1, 3)
+    extent = max(float(np.linalg.norm(hi - lo)),
+                 float(np.linalg.norm(centres - (lo + hi) / 2, axis=1).max()), 1e-30)
+    sensors = [c.sensor_dict(near_clip=CLIP_FRACS[0] * extent, far_clip=CLIP_FRACS[1] * extent)
+               for c in cameras]
     scene = gbuffer_scene({"surfels": params}, sensors, max_hits=max_hits,
                           targets="weight,depth_unbiased,normal")
     integ = scene.integrator()

@@ -126,7 +126,7 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
     scene_d = {"type": "scene", "surfels": SurfelShapeBase.from_params(params, id="surfels"),
                "env": emitter, "integrator": integ}
     for i, v in enumerate(vs):
-        sd = v.camera.sensor_dict()
+        sd = v.camera.sensor_dict(**data.clip_planes())
         scene_d[f"sensor_{i:03d}"] = {**sd, "film": {**sd["film"], "pixel_format": "rgba"}}
     scene = mi.load_dict(scene_d)
     integrator = scene.integrator()

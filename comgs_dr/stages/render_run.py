@@ -63,7 +63,7 @@ def render_run(run_dir, views: str = "test", progress: bool = True, max_hits: in
         raise ValueError(f"the dataset at {info['data']} has no {views} views")
     params = load_ply(str(ply))
     bg = 1.0 if data.white_background else 0.0
-    scene = gbuffer_scene({"surfels": params}, [v.camera.sensor_dict() for v in vs], max_hits=max_hits,
+    scene = gbuffer_scene({"surfels": params}, [v.camera.sensor_dict(**data.clip_planes()) for v in vs], max_hits=max_hits,
                           background=bg)
     integ = scene.integrator()
     gt_geo = _gt_geometry(Path(info["data"]), views) if info["resolution_scale"] == 1 else []
