@@ -22,9 +22,10 @@ _HIGH_BIT = ("I;16", "I;16B", "I;16L", "I;16N", "I")
 
 def _open(path: Path):
     try:
-        im = Image.open(path)
-        im.load()
-        return im
+        with open(path, "rb") as f:     # closed even when decoding fails
+            im = Image.open(f)
+            im.load()
+            return im
     except FileNotFoundError:
         raise DatasetError(f"{path}: image file not found") from None
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:

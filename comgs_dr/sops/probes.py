@@ -96,7 +96,7 @@ class ProbeSet:
         if not p.is_file():
             raise FileNotFoundError(f"probe file not found: {p}")
         try:
-            with np.load(p, allow_pickle=False) as z:
+            with open(p, "rb") as f, np.load(f, allow_pickle=False) as z:   # closed on errors
                 meta = json.loads(str(z["meta"]))
                 if not isinstance(meta, dict):
                     raise ValueError(f"'meta' is not a JSON object: {meta!r:.40}")

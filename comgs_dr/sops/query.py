@@ -273,7 +273,8 @@ def _search(grid: ProbeGrid, x, k: int):
     def i(v):
         return dr.opaque(mi.Int32, int(v))
 
-    r2 = f(np.float32(grid.radius) ** 2)
+    with np.errstate(over="ignore"):        # radius > 1.8e19: r² = inf, every probe is in
+        r2 = f(np.float32(grid.radius) ** 2)
     rb = f(grid.radius * (1.0 + _BOX_PAD))
     o = [f(v) for v in grid.origin]
     s = f(grid.inv_cell)

@@ -4,14 +4,17 @@ tests/conftest.py)."""
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import signal
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
+from PIL import Image
 
 # Reproducible in CI: no example database, derandomised; bigger counts only under -m slow.
 settings.register_profile(
@@ -199,3 +202,38 @@ def write(path, data: bytes) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(data)
     return path
+
+
+# --------------------------------------------------------------------- tiny datasets
+W, H = 8, 6
+
+
+def png_bytes(seed=0, alpha=False) -> bytes:
+    """A random W x H RGB(A) PNG."""
+    rng = np.random.default_rng(seed)
+    a = rng.integers(0, 256, (H, W, 4 if alpha else 3), dtype=np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(a).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def nerf_doc(split: str, n: int = 2) -> dict:
+    """transforms_<split>.json: n cameras 4 units above the origin, looking down."""
+    frames = []
+    for i in range(n):
+        m = np.eye(4)
+        m[:3, 3] = (0.3 * i, 0.0, 4.0)
+        frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": m.tolist()})
+    return {"camera_angle_x": 0.8, "frames": frames}
+
+
+def nerf_folder(root, docs: dict | None = None, images: dict | None = None):
+    """A NeRF-synthetic folder with 2 train + 1 test RGBA views of W x H."""
+    docs = docs or {}
+    for split, n in (("train", 2), ("test", 1)):
+        raw = docs.get(split, json.dumps(nerf_doc(split, n)).encode())
+        write(root / f"transforms_{split}.json", raw)
+        for i in range(n):
+            name = f"{split}/r_{i}.png"
+            write(root / name, (images or {}).get(name, png_bytes(i, alpha=True)))
+    return root

@@ -15,10 +15,15 @@ from hypothesis import given
 from hypothesis import strategies as st
 from PIL import Image
 from robust_util import (
+    H,
+    W,
     check_clear_error,
     corrupted_json_bytes,
     fuzz,
     mutated_bytes,
+    nerf_doc,
+    nerf_folder,
+    png_bytes,
     scratch,
     slow,
     time_limit,
@@ -26,16 +31,6 @@ from robust_util import (
 )
 
 from comgs_dr.data.load import load_dataset
-
-W, H = 8, 6
-
-
-def _png(seed=0, alpha=False) -> bytes:
-    rng = np.random.default_rng(seed)
-    a = rng.integers(0, 256, (H, W, 4 if alpha else 3), dtype=np.uint8)
-    buf = io.BytesIO()
-    Image.fromarray(a).save(buf, format="PNG")
-    return buf.getvalue()
 
 
 def _check(root) -> None:
@@ -55,29 +50,8 @@ def _check(root) -> None:
 
 
 # --------------------------------------------------------------------- NeRF-synthetic
-def _nerf_doc(split: str, n: int = 2) -> dict:
-    frames = []
-    for i in range(n):
-        m = np.eye(4)
-        m[:3, 3] = (0.3 * i, 0.0, 4.0)
-        frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": m.tolist()})
-    return {"camera_angle_x": 0.8, "frames": frames}
-
-
-def _nerf(root, docs: dict | None = None, images: dict | None = None):
-    """A NeRF-synthetic folder with 2 train + 1 test RGBA views of W x H."""
-    docs = docs or {}
-    for split, n in (("train", 2), ("test", 1)):
-        raw = docs.get(split, json.dumps(_nerf_doc(split, n)).encode())
-        write(root / f"transforms_{split}.json", raw)
-        for i in range(n):
-            name = f"{split}/r_{i}.png"
-            write(root / name, (images or {}).get(name, _png(i, alpha=True)))
-    return root
-
-
 def test_valid_nerf_loads(tmp_path):
-    data = load_dataset(_nerf(tmp_path))
+    data = load_dataset(nerf_folder(tmp_path))
     assert len(data.train) == 2 and len(data.test) == 1
 
 
@@ -85,9 +59,9 @@ def _nerf_json_test(n):
     @fuzz(n)
     @given(split=st.sampled_from(["train", "test"]), data=st.data())
     def run(split, data):
-        raw = data.draw(corrupted_json_bytes(_nerf_doc(split, 2 if split == "train" else 1)))
+        raw = data.draw(corrupted_json_bytes(nerf_doc(split, 2 if split == "train" else 1)))
         with scratch() as tmp:
-            _check(_nerf(tmp, {split: raw}))
+            _check(nerf_folder(tmp, {split: raw}))
     return run
 
 
@@ -114,11 +88,11 @@ def test_nerf_json_damage_many():
 ])
 def test_nerf_bad_intrinsics(entry, tmp_path):
     """Zero/negative/huge/mistyped intrinsics: a clear error, not ZeroDivisionError."""
-    doc = _nerf_doc("train")
+    doc = nerf_doc("train")
     doc.pop("camera_angle_x")
     doc.update(entry)
     raw = json.dumps(doc).encode().replace(b"Infinity", b"1e309")
-    root = _nerf(tmp_path, {"train": raw})
+    root = nerf_folder(tmp_path, {"train": raw})
     with pytest.raises(Exception) as ei:
         load_dataset(root)
     check_clear_error(ei.value, root)
@@ -128,9 +102,9 @@ def _nerf_image_test(n):
     @fuzz(n)
     @given(data=st.data())
     def run(data):
-        bad = data.draw(mutated_bytes(_png(0, alpha=True), 33))
+        bad = data.draw(mutated_bytes(png_bytes(0, alpha=True), 33))
         with scratch() as tmp:
-            _check(_nerf(tmp, images={"train/r_0.png": bad}))
+            _check(nerf_folder(tmp, images={"train/r_0.png": bad}))
     return run
 
 
@@ -151,7 +125,7 @@ def test_nerf_image_claiming_a_huge_size(size, tmp_path):
     Image.new("RGB", (1, 1)).save(buf, format="PNG")
     raw = bytearray(buf.getvalue())
     raw[16:24] = size[0].to_bytes(4, "big") + size[1].to_bytes(4, "big")   # IHDR width/height
-    root = _nerf(tmp_path, images={"train/r_0.png": bytes(raw)})
+    root = nerf_folder(tmp_path, images={"train/r_0.png": bytes(raw)})
     with time_limit(30), pytest.raises(Exception) as ei:
         load_dataset(root)
     check_clear_error(ei.value, root)
@@ -167,7 +141,7 @@ def _points_test(n):
     @given(data=st.data())
     def run(data):
         with scratch() as tmp:
-            root = _nerf(tmp)
+            root = nerf_folder(tmp)
             write(root / "points3d.ply", data.draw(mutated_bytes(good, good.find(b"end_header"))))
             _check(root)
     return run
@@ -199,7 +173,7 @@ def _llff(root, pb_bytes: bytes | None = None, n_images: int = 2):
         pb_bytes = buf.getvalue()
     write(root / "poses_bounds.npy", pb_bytes)
     for i in range(n_images):
-        write(root / "images" / f"IMG_{i}.png", _png(i))
+        write(root / "images" / f"IMG_{i}.png", png_bytes(i))
     return root
 
 
@@ -266,8 +240,8 @@ def _colmap(root, files: dict | None = None):
     model = root / "sparse" / "0"
     for name, text in {**_TEXT, **(files or {})}.items():
         write(model / name, text if isinstance(text, bytes) else text.encode())
-    write(root / "images" / "a.png", _png(0))
-    write(root / "images" / "b.png", _png(1))
+    write(root / "images" / "a.png", png_bytes(0))
+    write(root / "images" / "b.png", png_bytes(1))
     return root
 
 

@@ -19,6 +19,7 @@ from robust_util import (
     corrupted_json_bytes,
     fuzz,
     mutated_bytes,
+    nerf_folder,
     scratch,
     slow,
     time_limit,
@@ -266,12 +267,11 @@ def test_render_on_corrupt_run_folder(tmp_path, capsys):
     """``comgs render`` on a damaged run.json, a missing one, a truncated point_cloud.ply:
     exit 2 with a message naming the file, no traceback."""
     from conftest import random_surfels
-    from test_parsers_datasets import _nerf
 
     from comgs_dr import cli
     from comgs_dr.surfels import save_ply
     from comgs_dr.train.run import write_run_info
-    data = _nerf(tmp_path / "data")
+    data = nerf_folder(tmp_path / "data")
     run = tmp_path / "run"
     write_run_info(run, data, "object", 1, False)
     save_ply(random_surfels(np.random.default_rng(0), n=20), run / "point_cloud.ply")
