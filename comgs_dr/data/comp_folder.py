@@ -23,6 +23,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core.cameras import from_matrix
+from comgs_dr.data.types import clip_planes
 
 MANIFEST = "composition.json"
 FORMAT_VERSION = 1
@@ -201,9 +202,21 @@ def read_cameras(path, world_from_source=None, res=None) -> list[dict]:
     return out
 
 
-def sensor_dict(cam: dict, pixel_format: str = "rgb") -> dict:
+def sensor_dict(cam: dict, pixel_format: str = "rgb", clip: dict | None = None) -> dict:
+    """Sensor of a camera of :func:`read_cameras`; ``clip``: near/far planes
+    (:func:`clip_for`)."""
     if cam["width"] is None:
         raise ValueError(f"camera {cam['name']}: image size unknown (give --res or --gt-dir)")
     s = from_matrix(cam["to_world"], cam["fov_x_deg"], (cam["width"], cam["height"]))
     s["film"]["pixel_format"] = pixel_format
-    return s
+    return {**s, **(clip or {})}
+
+
+def clip_for(manifest: dict, cams: list[dict]) -> dict:
+    """Clip planes scaled to the composition: its objects' bounds and the cameras' distance
+    to them (a millimetre-scale composition is not clipped away by Mitsuba's 1 cm)."""
+    b = np.array([o["bounds"] for o in manifest["objects"].values()], np.float64).reshape(-1, 2, 3)
+    centre = b.mean((0, 1)) if len(b) else np.zeros(3)
+    sizes = [float(np.linalg.norm(x[1] - x[0])) for x in b]
+    dists = [float(np.linalg.norm(np.asarray(c["to_world"])[:3, 3] - centre)) for c in cams]
+    return clip_planes(max(sizes + dists + [1e-30]))

@@ -69,8 +69,9 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
             if res is None:
                 c["height"], c["width"] = gts[c["name"]].shape[:2]
     extra = {"rays": int(rays), "shadow_rays": int(rays)} if rays else {}
+    clip = comp_folder.clip_for(manifest, cams)        # scaled to the composition
     scene = load_comp_scene(comp_dir, variant, materials,
-                            [comp_folder.sensor_dict(cams[0])], **extra)
+                            [comp_folder.sensor_dict(cams[0], clip=clip)], **extra)
     integrator = scene.integrator()
     sensor = scene.sensors()[0]
     params = mi.traverse(sensor)

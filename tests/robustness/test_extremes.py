@@ -597,3 +597,65 @@ def test_stages_at_1e_3_and_1e3_metres(tmp_path):
     for s in (1e-3, 1e3):
         assert np.abs(imgs[s] - imgs[1.0]).mean() < 1.0, s     # 8-bit levels
         assert np.allclose(probes[s], probes[1.0], atol=1e-3), s
+
+
+def _composition(root, s):
+    """A scene run (plane), an object run (ball + probes), a placement on the plane and
+    ``compose`` + ``render-comp`` (sop), all scaled by ``s``; the rendered test frame."""
+    import json
+
+    from PIL import Image
+
+    from comgs_dr.core.similarity import Similarity, write_placements
+    from comgs_dr.lighting import envmap as em
+    from comgs_dr.sops import occlusion as occ
+    from comgs_dr.sops.bake import bake
+    from comgs_dr.sops.probes import ProbeSet
+    from comgs_dr.stages.compose import ComposeConfig, compose
+    from comgs_dr.stages.render_comp import render_comp
+    from comgs_dr.surfels import save_ply
+    from comgs_dr.surfels.shape import SurfelShapeBase
+    from comgs_dr.train.run import write_run_info
+    data = root / "data"
+    data.mkdir(parents=True)
+    frames = []
+    for i, a in enumerate(np.linspace(0, 2 * np.pi, 4, endpoint=False)):
+        cam = _camera(np.array([2.5 * np.cos(a), 2.5 * np.sin(a), 2.0]) * s, (0, 0, 0))
+        Image.fromarray(np.full((RES, RES, 3), 128, np.uint8)).save(data / f"r_{i}.png")
+        frames.append({"file_path": f"./r_{i}",
+                       "transform_matrix": (cam.to_world @ np.diag([-1.0, 1, -1, 1])).tolist()})
+    for split in ("train", "test"):
+        (data / f"transforms_{split}.json").write_text(json.dumps(
+            {"camera_angle_x": np.radians(45.0), "frames": frames}))
+    run = root / "scene_run"
+    write_run_info(run, data, "scene", 1, False)
+    save_ply(scaled(plane(n=16, half=1.5), s), run / "point_cloud.ply")
+    obj = root / "obj"
+    obj.mkdir()
+    b = scaled(ball((0, 0, 0)), s)
+    save_ply(b, obj / "point_cloud.ply")
+    g = np.linspace(-0.3, 0.3, 3) * s
+    pos = np.stack(np.meshgrid(g, g, g), -1).reshape(-1, 3)
+    probes = ProbeSet(pos, np.tile([0, 0, 1.0], (len(pos), 1)), 4, 0.4 * s)
+    bake(mi.load_dict({"type": "scene", "o": SurfelShapeBase.from_params(b, id="o")}), probes,
+         max_hits=8, progress=False)
+    probes.save(obj / "probes.npz")
+    em.write_exr(root / "env.exr", sun_map(8, sun=50.0), "octahedral")
+    write_placements(root / "t.json", {"ball": Similarity(1.0, np.eye(3),
+                                                          np.array([0, 0, 0.3]) * s)})
+    compose(run, {"ball": obj}, root / "t.json", root / "comp", env=root / "env.exr",
+            progress=False, cfg=ComposeConfig(shadow=occ.ShadowConfig(count=30, res=4),
+                                              scene_views=4, min_consistent=1))
+    m = render_comp(root / "comp", data / "transforms_test.json", "sop", res=RES, rays=8,
+                    progress=False)
+    assert m["frames"] == 4
+    return np.asarray(Image.open(root / "comp" / "renders" / "sop" / "r_1.png"), np.float64)
+
+
+def test_composition_at_1e_3_metres(tmp_path):
+    """``compose`` + ``render-comp`` of the same composition at 1 m and 1 mm: the same
+    frame (the 1 mm one was clipped away by the sensor's absolute near plane)."""
+    ref = _composition(tmp_path / "m", 1.0)
+    small = _composition(tmp_path / "mm", 1e-3)
+    assert ref.std() > 5
+    assert np.abs(small - ref).mean() < 2.0, np.abs(small - ref).mean()
