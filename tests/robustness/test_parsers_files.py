@@ -446,3 +446,63 @@ def test_checkpoint_bad_state(state, arrays, tmp_path):
     with pytest.raises(ValueError) as ei:
         load_checkpoint(path, "fmt/1")
     check_clear_error(ei.value, path)
+
+
+def _run_with_checkpoint(tmp_path, folder: str, arrays: dict, state: dict | None):
+    """A tiny NeRF dataset, a step-1 run (surfels + run.json) and ``folder/checkpoint.npz``
+    holding ``arrays`` and ``state`` (JSON; None: random bytes)."""
+    from conftest import random_surfels
+
+    from comgs_dr.surfels import save_ply
+    from comgs_dr.train.run import write_run_info
+    data = nerf_folder(tmp_path / "data")
+    run = tmp_path / "run"
+    write_run_info(run, data, "object", 1, False)
+    save_ply(random_surfels(np.random.default_rng(0), n=20), run / "point_cloud.ply")
+    ck = run / folder / "checkpoint.npz"
+    ck.parent.mkdir(parents=True, exist_ok=True)
+    if state is None:
+        ck.write_bytes(b"PK\x03\x04" + bytes(range(200)))
+    else:
+        np.savez(ck, **arrays, state=np.frombuffer(json.dumps(state).encode(), np.uint8))
+    return data, run, ck
+
+
+_RESUME_BUG = pytest.mark.xfail(strict=True, reason=(
+    "stages/reconstruct.py Trainer.__init__ (resume): a checkpoint.npz of the right format "
+    "whose arrays or state keys are missing raises KeyError (a traceback from `comgs "
+    "reconstruct`), and arrays of the wrong shape raise a ValueError that does not name "
+    "the checkpoint"))
+
+
+@pytest.mark.parametrize("arrays,state", [
+    ({}, None),
+    pytest.param({}, {"format": "comgs_dr.checkpoint/1"}, marks=_RESUME_BUG),
+    pytest.param({f"p_{k}": np.zeros((3, 2)) for k in (
+        "means", "quats", "log_scales", "opacity_logit", "sh", "albedo", "roughness",
+        "metallic")}, {"format": "comgs_dr.checkpoint/1",
+                                                  "iteration": 1, "log": [], "elapsed": 0.0,
+                                                  "init": "x"}, marks=_RESUME_BUG),
+], ids=["damaged", "no-arrays", "wrong-shape"])
+def test_reconstruct_resume_from_corrupt_checkpoint(arrays, state, tmp_path, capsys):
+    """``comgs reconstruct`` resuming from a damaged or inconsistent checkpoint: exit 2
+    naming the checkpoint, no traceback."""
+    from comgs_dr import cli
+    data, run, ck = _run_with_checkpoint(tmp_path, ".", arrays, state)
+    code = cli.main(["reconstruct", str(data), "--out", str(run), "--iterations", "2",
+                     "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err, err
+    assert "checkpoint" in err and run.name in err, err
+
+
+@pytest.mark.parametrize("state", [None, {"format": "comgs_dr.material_checkpoint/2",
+                                          "config": {"visibility": "trace"}}],
+                         ids=["damaged", "other-visibility"])
+def test_decompose_resume_from_corrupt_checkpoint(state, tmp_path, capsys):
+    from comgs_dr import cli
+    data, run, ck = _run_with_checkpoint(tmp_path, "material", {}, state)
+    code = cli.main(["decompose", str(run), "--iterations", "2", "--rays", "2", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err, err
+    assert str(ck) in err, err
