@@ -1,5 +1,5 @@
 """Numeric flags of ``comgs`` (reconstruct, decompose, estimate-light, compose, render-comp,
-demo, relight): ``-1``, ``0``, ``nan``, ``inf``, ``1e309`` and integers beyond 32 bits.
+demo, relight, export-mesh): ``-1``, ``0``, ``nan``, ``inf``, ``1e309`` and integers beyond 32 bits.
 
 Contract: exit status 2 and a message naming the flag (or its config field), no
 traceback, decided before any input is read (the inputs here do not exist, so a message
@@ -31,6 +31,8 @@ def _argv(tmp, command: str) -> list[str]:
         "demo": ["demo", "--out", str(tmp / "out"), "--quiet"],
         "relight": ["relight", str(tmp / "no_run"), "--envmap", str(tmp / "no.exr"),
                     "--out", str(tmp / "out"), "--quiet"],
+        "export-mesh": ["export-mesh", str(tmp / "no_run"), "--out", str(tmp / "out" / "m.ply"),
+                        "--quiet"],
     }[command]
 
 
@@ -79,6 +81,9 @@ CASES = [
     ("demo", ["--res", HUGE], ["--res"]),
     ("relight", ["--scale", "nan"], ["--scale"]),
     ("relight", ["--rays", HUGE], ["--rays"]),
+    ("export-mesh", ["--resolution", "-1"], ["resolution"]),
+    ("export-mesh", ["--resolution", "0"], ["resolution"]),
+    ("export-mesh", ["--resolution", HUGE], ["--resolution"]),
 ]
 
 
