@@ -244,13 +244,18 @@ class Trainer:
         resumed = ck.load_checkpoint(self.run_dir / ck.CKPT_NAME, CKPT_FORMAT)
         if resumed is not None:
             arrays, moments, state = resumed
-            params = SurfelParams.from_numpy(**{k: arrays[k] for k in field_names()})
-            self.iteration, self.log, self.elapsed = state["iteration"], state["log"], state["elapsed"]
-            self.init_desc = state["init"]
-            if "rng_state" in state:        # the stream continues exactly where it was
-                self.rng.bit_generator.state = state["rng_state"]
-            else:                           # checkpoints of older versions
-                self.rng = np.random.default_rng(state["rng_seed"])
+            try:
+                params = SurfelParams.from_numpy(**{k: arrays[k] for k in field_names()})
+                self.iteration, self.log = int(state["iteration"]), list(state["log"])
+                self.elapsed, self.init_desc = float(state["elapsed"]), state["init"]
+                if "rng_state" in state:        # the stream continues exactly where it was
+                    self.rng.bit_generator.state = state["rng_state"]
+                else:                           # checkpoints of older versions
+                    self.rng = np.random.default_rng(state["rng_seed"])
+            except (KeyError, ValueError, TypeError) as e:
+                raise ValueError(f"checkpoint {self.run_dir / ck.CKPT_NAME} does not hold a "
+                                 f"usable step-1 state ({type(e).__name__}: {e}); delete it "
+                                 "to start over") from e
         else:
             params, self.init_desc = initial_surfels(data, cfg, self.rng)
             params = _with_sh_degree(params, 0)
@@ -271,7 +276,11 @@ class Trainer:
         self.opt = mi.ad.Adam(lr=1.0)
         self._register(params)
         if moments is not None:
-            ck.restore_moments(self.opt, PARAM_KEYS, moments, field_from_numpy)
+            try:
+                ck.restore_moments(self.opt, PARAM_KEYS, moments, field_from_numpy)
+            except (KeyError, ValueError, TypeError, RuntimeError) as e:
+                raise ValueError(f"checkpoint {self.run_dir / ck.CKPT_NAME}: its Adam state does "
+                                 f"not fit its surfels ({e}); delete it to start over") from e
         self.density = DensityController(DensityConfig(**cfg.densify), params.count, self.extent)
         self.targets = [mi.TensorXf(v.image.astype(np.float32)) for v in self.views]
         self.masks = [None if v.mask is None else mi.TensorXf(v.mask[..., None].astype(np.float32))

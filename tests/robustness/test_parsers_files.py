@@ -468,21 +468,14 @@ def _run_with_checkpoint(tmp_path, folder: str, arrays: dict, state: dict | None
     return data, run, ck
 
 
-_RESUME_BUG = pytest.mark.xfail(strict=True, reason=(
-    "stages/reconstruct.py Trainer.__init__ (resume): a checkpoint.npz of the right format "
-    "whose arrays or state keys are missing raises KeyError (a traceback from `comgs "
-    "reconstruct`), and arrays of the wrong shape raise a ValueError that does not name "
-    "the checkpoint"))
-
-
 @pytest.mark.parametrize("arrays,state", [
     ({}, None),
-    pytest.param({}, {"format": "comgs_dr.checkpoint/1"}, marks=_RESUME_BUG),
+    ({}, {"format": "comgs_dr.checkpoint/1"}),
     pytest.param({f"p_{k}": np.zeros((3, 2)) for k in (
         "means", "quats", "log_scales", "opacity_logit", "sh", "albedo", "roughness",
         "metallic")}, {"format": "comgs_dr.checkpoint/1",
                                                   "iteration": 1, "log": [], "elapsed": 0.0,
-                                                  "init": "x"}, marks=_RESUME_BUG),
+                                                  "init": "x"}),
 ], ids=["damaged", "no-arrays", "wrong-shape"])
 def test_reconstruct_resume_from_corrupt_checkpoint(arrays, state, tmp_path, capsys):
     """``comgs reconstruct`` resuming from a damaged or inconsistent checkpoint: exit 2
