@@ -25,7 +25,7 @@ import mitsuba as mi
 import numpy as np
 from scipy.ndimage import maximum_filter
 
-from comgs_dr.core import exr
+from comgs_dr.core import exr, rgbe
 from comgs_dr.core import octahedral as octa
 from comgs_dr.core.colorspace import LUMA
 from comgs_dr.core.equirect import (
@@ -277,7 +277,12 @@ def _read_checked(p: Path) -> tuple[np.ndarray, dict]:
         if p.suffix.lower() == ".exr":
             arr, attrs = exr.read_image(p), exr.read_attrs(p)
         else:
+            with open(p, "rb") as f:
+                if f.read(2) == b"#?":      # Radiance RGBE: Mitsuba crashes on damaged RLE
+                    rgbe.check_rgbe(p)
             arr = np.array(mi.Bitmap(str(p)), copy=True)
+    except ValueError:
+        raise
     except Exception as e:  # Mitsuba raises RuntimeError with its own wording
         raise ValueError(f"cannot read environment map {p}: {e}") from e
     if arr.ndim != 3 or arr.shape[2] not in (3, 4) or min(arr.shape[:2]) < 2:

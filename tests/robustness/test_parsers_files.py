@@ -176,10 +176,6 @@ def test_envmap_hdr_damage_many():
     _hdr_test(600)()
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "lighting/envmap.py read_envmap_file/load_envmap read .hdr through mi.Bitmap, whose "
-    "RGBE reader corrupts the heap (abort 'malloc(): invalid size', or SIGSEGV) when a "
-    "scanline after the first has a damaged RLE marker: the process dies, no error"))
 @pytest.mark.parametrize("scanline", [1, 7])
 def test_envmap_hdr_damaged_scanline_marker_is_an_error(scanline, tmp_path):
     """Runs in a child process: the failure mode is a crash of the whole interpreter."""
