@@ -130,7 +130,7 @@ def _flag_value_test(n):
 
 def test_non_finite_and_huge_values():
     """Any spelling of NaN/Inf/overflowing floats, any integer beyond 32 bits."""
-    _flag_value_test(40)()
+    _flag_value_test(80)()
 
 
 @slow

@@ -68,7 +68,7 @@ def _nerf_json_test(n):
 def test_nerf_json_damage():
     """transforms_*.json: dropped keys, wrong types, NaN/Inf/huge values, extra keys,
     empty lists, other documents, byte damage, non-UTF-8 text."""
-    _nerf_json_test(150)()
+    _nerf_json_test(300)()
 
 
 @slow
@@ -110,7 +110,7 @@ def _nerf_image_test(n):
 
 def test_nerf_image_damage():
     """A damaged PNG (truncated, flipped header bytes, random bytes, empty)."""
-    _nerf_image_test(60)()
+    _nerf_image_test(120)()
 
 
 @slow
@@ -148,7 +148,7 @@ def _points_test(n):
 
 
 def test_points_ply_damage():
-    _points_test(80)()
+    _points_test(150)()
 
 
 @slow
@@ -220,7 +220,7 @@ def _llff_test(n):
 def test_llff_poses_damage():
     """poses_bounds.npy: wrong shapes/row counts, NaN/Inf/zero/huge cells (hwf, poses,
     bounds), other dtypes (ints, complex, strings, pickled objects), byte damage."""
-    _llff_test(150)()
+    _llff_test(300)()
 
 
 @slow
@@ -298,7 +298,7 @@ def _colmap_text_test(n):
 
 
 def test_colmap_text_damage():
-    _colmap_text_test(100)()
+    _colmap_text_test(200)()
 
 
 @slow
@@ -340,7 +340,7 @@ def _colmap_binary_test(n):
 def test_colmap_binary_damage():
     """cameras/images/points3D/rigs/frames.bin: byte damage and huge 32/64-bit counts at
     every offset (COLMAP itself loops ~2^63 times on a huge frame count)."""
-    _colmap_binary_test(150)()
+    _colmap_binary_test(300)()
 
 
 @slow

@@ -128,7 +128,7 @@ def _byte_damage_test(n_examples):
 
 def test_byte_damage():
     """Truncation, flipped bytes (anywhere / in the header), random bytes, empty files."""
-    _byte_damage_test(300)()
+    _byte_damage_test(500)()
 
 
 @slow
@@ -197,7 +197,7 @@ def _structural_test(n_examples):
 def test_structural_damage():
     """Dropped properties, other dtypes, NaN/Inf cells, header counts from 0 to 10^30,
     misspelt keywords, zero quaternions, zero rows, extra scales, gaps in f_rest."""
-    _structural_test(300)()
+    _structural_test(500)()
 
 
 @slow
@@ -277,7 +277,7 @@ def _splat_test(n_examples):
 
 
 def test_splat_damage():
-    _splat_test(200)()
+    _splat_test(300)()
 
 
 @slow
