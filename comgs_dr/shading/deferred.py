@@ -130,6 +130,11 @@ class DeferredPbr:
         {'albedo', 'roughness', 'metallic'} (default: the scene's), e.g. the optimiser's
         variables — gradients flow to them through the blend."""
         geo = self.geometry(sensor)
+        if dr.width(geo["pix"]) == 0:       # width-0 Dr.Jit arrays fail later, cryptically
+            name = sensor if isinstance(sensor, int) else repr(sensor.id() or "sensor")
+            raise ValueError(f"DeferredPbr: no pixel of view {name} covers a surfel "
+                             f"(weight ≥ {self.min_weight}); is the object in view and inside "
+                             "the sensor's clip planes?")
         mats = materials if materials is not None else self.surfel_materials()
         K = self.max_hits
         ids, w = geo["ids"], geo["w"]

@@ -132,8 +132,9 @@ def farthest_points(points: np.ndarray, count: int, seed: int = 0) -> np.ndarray
     if count >= n:
         return np.arange(n)
     start = int(np.random.default_rng(seed).integers(n))
+    h = min(7, int(np.log2(n)))             # the KD-line height needs 2^h <= n (else it asserts)
     idx = fpsample.bucket_fps_kdline_sampling(np.ascontiguousarray(points, np.float32),
-                                              count, h=7, start_idx=start)
+                                              count, h=h, start_idx=start)
     return np.asarray(idx, np.int64)
 
 
