@@ -124,10 +124,12 @@ def _consistent(depth, normal, dirs, origins, weight, max_deg: float) -> np.ndar
     return (np.abs((n * nd).sum(-1)) >= math.cos(math.radians(max_deg))) & (weight > 0.5)
 
 
-def _tsdf(params, views, bounds, cfg: MeshConfig, src: str, progress: bool):
-    """Render every view's depth/coverage(/colour) and fuse them."""
+def _tsdf(params, views, bounds, cfg: MeshConfig, src: str, progress: bool,
+          clip: dict | None = None):
+    """Render every view's depth/coverage(/colour) and fuse them (``clip``: sensor clip
+    planes, ``SceneData.clip_planes``)."""
     targets = "weight,depth_unbiased,normal" + {"radiance": ",color", "albedo": ",albedo"}.get(src, "")
-    sensors = [v.camera.sensor_dict() for v in views]
+    sensors = [v.camera.sensor_dict(**(clip or {})) for v in views]
     scene = gbuffer_scene(params, sensors, max_hits=cfg.max_hits, targets=targets)
     integ = scene.integrator()
     vol = TSDFVolume(bounds, cfg.resolution, cfg.trunc_voxels)
@@ -226,7 +228,7 @@ def export_mesh(run_dir, out, cfg: MeshConfig = MeshConfig(), progress: bool = T
     views = select_views(data.train, cfg.views)
     if cfg.method == "tsdf":
         verts, faces, colors, extra = _tsdf(params, views, _bounds(params, cfg), cfg, src,
-                                            progress)
+                                            progress, data.clip_planes())
     else:
         verts, faces, colors, extra = _poisson(params, views, cfg, src)
     t_extract = time.perf_counter() - t0
