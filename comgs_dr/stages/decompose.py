@@ -135,7 +135,8 @@ class MaterialTrainer:
             params.roughness = mi.Float(np.full(n, cfg.init_roughness, np.float32))
             params.metallic = mi.Float(np.full(n, cfg.init_metallic, np.float32))
         self.views, self.test = self.data.train, self.data.test
-        sensors = [v.camera.sensor_dict() for v in self.views + self.test]
+        clip = self.data.clip_planes()            # relative to the scene, as step 1
+        sensors = [v.camera.sensor_dict(**clip) for v in self.views + self.test]
         self.object_size = object_size(params)
         self.timings = {}
         probe_path = None

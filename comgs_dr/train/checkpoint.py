@@ -89,9 +89,9 @@ def load_checkpoint(path: Path, fmt: str):
     if not path.exists():
         return None
     try:
-        z = np.load(path)
-        state = json.loads(bytes(z["state"]).decode())
-        files = {k: z[k] for k in z.files if k != "state"}
+        with np.load(path) as z:
+            state = json.loads(bytes(z["state"]).decode())
+            files = {k: z[k] for k in z.files if k != "state"}
     except Exception as e:  # noqa: BLE001 - any decoding failure means a bad file
         raise ValueError(f"checkpoint {path} is unreadable ({e}); delete it to start over") from e
     if not isinstance(state, dict):

@@ -674,11 +674,6 @@ def test_composition_at_1e_3_metres(tmp_path):
     assert np.abs(small - ref).mean() < 2.0, np.abs(small - ref).mean()
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "stages/decompose.py MaterialTrainer builds its sensors with v.camera.sensor_dict(), "
-    "i.e. Mitsuba's absolute clip planes (near 0.01): on a 1 mm scene no training pixel is "
-    "covered and step 2 stops with \"DeferredPbr: no pixel of view 'sensor_000' covers a surfel\" "
-    "(before: a Dr.Jit size error); the other stages use data.types.clip_planes"))
 def test_decompose_at_1e_3_metres(tmp_path):
     """Step 2 (a few iterations) on the same capture at 1 m and 1 mm: both train."""
     from comgs_dr.stages.decompose import MaterialConfig, train_material
