@@ -281,8 +281,6 @@ def _read_checked(p: Path) -> tuple[np.ndarray, dict]:
                 if f.read(2) == b"#?":      # Radiance RGBE: Mitsuba crashes on damaged RLE
                     rgbe.check_rgbe(p)
             arr = np.array(mi.Bitmap(str(p)), copy=True)
-    except ValueError:
-        raise
     except Exception as e:  # Mitsuba raises RuntimeError with its own wording
         raise ValueError(f"cannot read environment map {p}: {e}") from e
     if arr.ndim != 3 or arr.shape[2] not in (3, 4) or min(arr.shape[:2]) < 2:
