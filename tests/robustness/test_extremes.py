@@ -385,34 +385,42 @@ def shadow_region_outside():
     return {}
 
 
-def compose_outside(tmp_path):
-    """``compose`` with an object placed 1 km outside the scene: a clear error naming the
-    object, before any occlusion is traced."""
+def _plane_scene_run(root, s: float):
+    """A NeRF folder of 4 grey views around the origin and a step-1 scene run of a surfel
+    plane, both scaled by ``s``: (data folder, run folder)."""
     import json
 
     from PIL import Image
 
-    from comgs_dr.core.similarity import Similarity, write_placements
-    from comgs_dr.lighting import envmap as em
-    from comgs_dr.sops import occlusion as occ
-    from comgs_dr.sops.probes import ProbeSet
-    from comgs_dr.stages.compose import ComposeConfig, compose
     from comgs_dr.surfels import save_ply
     from comgs_dr.train.run import write_run_info
-    data = tmp_path / "data"
-    data.mkdir()
+    data = root / "data"
+    data.mkdir(parents=True)
     frames = []
     for i, a in enumerate(np.linspace(0, 2 * np.pi, 4, endpoint=False)):
-        cam = _camera((2.5 * np.cos(a), 2.5 * np.sin(a), 2.0), (0, 0, 0))
+        cam = _camera(np.array([2.5 * np.cos(a), 2.5 * np.sin(a), 2.0]) * s, (0, 0, 0))
         Image.fromarray(np.full((RES, RES, 3), 128, np.uint8)).save(data / f"r_{i}.png")
         frames.append({"file_path": f"./r_{i}",
                        "transform_matrix": (cam.to_world @ np.diag([-1.0, 1, -1, 1])).tolist()})
     for split in ("train", "test"):
         (data / f"transforms_{split}.json").write_text(json.dumps(
             {"camera_angle_x": np.radians(45.0), "frames": frames}))
-    run = tmp_path / "scene_run"
+    run = root / "scene_run"
     write_run_info(run, data, "scene", 1, False)
-    save_ply(plane(n=16, half=1.5), run / "point_cloud.ply")
+    save_ply(scaled(plane(n=16, half=1.5), s), run / "point_cloud.ply")
+    return data, run
+
+
+def compose_outside(tmp_path):
+    """``compose`` with an object placed 1 km outside the scene: a clear error naming the
+    object, before any occlusion is traced."""
+    from comgs_dr.core.similarity import Similarity, write_placements
+    from comgs_dr.lighting import envmap as em
+    from comgs_dr.sops import occlusion as occ
+    from comgs_dr.sops.probes import ProbeSet
+    from comgs_dr.stages.compose import ComposeConfig, compose
+    from comgs_dr.surfels import save_ply
+    data, run = _plane_scene_run(tmp_path, 1.0)
     obj = tmp_path / "obj"
     obj.mkdir()
     save_ply(ball((0, 0, 0)), obj / "point_cloud.ply")
@@ -615,7 +623,6 @@ def test_stages_at_1e_3_and_1e3_metres(tmp_path):
 def _composition(root, s):
     """A scene run (plane), an object run (ball + probes), a placement on the plane and
     ``compose`` + ``render-comp`` (sop), all scaled by ``s``; the rendered test frame."""
-    import json
 
     from PIL import Image
 
@@ -628,21 +635,7 @@ def _composition(root, s):
     from comgs_dr.stages.render_comp import render_comp
     from comgs_dr.surfels import save_ply
     from comgs_dr.surfels.shape import SurfelShapeBase
-    from comgs_dr.train.run import write_run_info
-    data = root / "data"
-    data.mkdir(parents=True)
-    frames = []
-    for i, a in enumerate(np.linspace(0, 2 * np.pi, 4, endpoint=False)):
-        cam = _camera(np.array([2.5 * np.cos(a), 2.5 * np.sin(a), 2.0]) * s, (0, 0, 0))
-        Image.fromarray(np.full((RES, RES, 3), 128, np.uint8)).save(data / f"r_{i}.png")
-        frames.append({"file_path": f"./r_{i}",
-                       "transform_matrix": (cam.to_world @ np.diag([-1.0, 1, -1, 1])).tolist()})
-    for split in ("train", "test"):
-        (data / f"transforms_{split}.json").write_text(json.dumps(
-            {"camera_angle_x": np.radians(45.0), "frames": frames}))
-    run = root / "scene_run"
-    write_run_info(run, data, "scene", 1, False)
-    save_ply(scaled(plane(n=16, half=1.5), s), run / "point_cloud.ply")
+    data, run = _plane_scene_run(root, s)
     obj = root / "obj"
     obj.mkdir()
     b = scaled(ball((0, 0, 0)), s)
