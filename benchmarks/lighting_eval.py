@@ -18,12 +18,27 @@ traced from procedural surfel scenes), with a random rotation about Z:
     python benchmarks/lighting_eval.py --maps ../shared/data/hdri --weights W.pt --masks 16
     python benchmarks/lighting_eval.py --maps DIR --quick        # 2 masks per map, res 32
 
-Tables: per method × coverage group × material; per method × group averaged over the three
-materials (+ panorama-level si-RMSE, unweighted over the equirect pixels); run time per
-sample. A PNG (``--out``) shows a few examples. The last line is
+Methods: ``net`` (the completion net; observed lights re-pasted as the paper re-adds them,
+``completion.blend_observed``), ``net+lights`` (plus the light head's lobes for lights clipped
+at EV 0, ``lighting.lights``), the fills ``mean``, ``push_pull``, ``sh`` (the baselines),
+``push_pull+lights`` (ablation: the head on a baseline fill) and ``diffusers`` when
+``--diffusers DIR`` names a local model. "Ours" is ``net+lights`` when a head is found.
+
+Per sample, besides the sphere metrics: ``light_angle_deg``, the angle between the dominant
+lights (``hdr.extract_lights``, k = 1) of the estimate and of the truth; ``light_in_hole``,
+whether the true dominant light's direction is unobserved; ``relight_psnr``, PSNR of a
+diffuse + glossy sphere (½ diffuse + ½ matte silver) under the estimate vs the truth, exposed
+at EV 0 (absolute: the estimate's power counts); ``sun_up_log_err``, |log| of the ratio of
+E(facing the true light) / E(facing up) between estimate and truth.
+
+Tables: per method × coverage group × material; per method × group × {all, light visible,
+light in hole}, averaged over the three materials; run time per sample. A PNG (``--out``)
+shows a few examples. The last line is
 ``net_wins=<k>/<n> si_rmse_net=<a> si_rmse_best_baseline=<b>``: n = coverage groups × {si-RMSE,
-angular error} on material-averaged values, a win = the net strictly below every baseline;
-a, b = mean material-averaged si-RMSE over all samples of the net and of the best baseline.
+angular error} on material-averaged values, a win = ours strictly below every baseline;
+a, b = mean material-averaged si-RMSE over all samples of ours and of the best baseline.
+The line before it gives the dominant-light angular error with the light outside the hole,
+ours vs the best baseline.
 """
 from __future__ import annotations
 
@@ -42,7 +57,10 @@ from comgs_dr.data import pano_masks
 
 GROUPS = (("40-60", 0.4, 0.6), ("60-80", 0.6, 0.8), ("80-100", 0.8, 1.0 + 1e-9))
 METRICS = (("si_rmse", "si-RMSE"), ("angular_deg", "angular °"), ("nrmse", "nRMSE"))
-BASELINES = ("mean", "push_pull", "sh")
+BASELINES = ("mean", "push_pull", "sh", "diffusers")
+EXTRA = (("light_angle_deg", "light angle °"), ("relight_psnr", "relight PSNR"),
+         ("sun_up_log_err", "|log E_sun/E_up err|"))
+SPLITS = ("all", "visible", "hole")
 
 
 def parse_args(argv=None):
@@ -50,6 +68,10 @@ def parse_args(argv=None):
     ap.add_argument("--maps", required=True, help="folder of equirect .hdr/.exr maps")
     ap.add_argument("--weights", default=None, help="CompletionNet checkpoint (default: the "
                     "shipped backends.DEFAULT_WEIGHTS if present, else no net)")
+    ap.add_argument("--light-head", default=None, help="light-head weights (default: the "
+                    "shipped lights.DEFAULT_HEAD if present; 'none': no +lights methods)")
+    ap.add_argument("--diffusers", default=None, help="local diffusers model folder "
+                    "(backends.DiffusersBackend); evaluated when given and importable")
     ap.add_argument("--masks", type=int, default=8, help="masks per map")
     ap.add_argument("--res", type=int, default=128, help="eval height (width = 2·res)")
     ap.add_argument("--seed", type=int, default=0)
@@ -99,19 +121,66 @@ def coverage_group(c: float):
     return None
 
 
-def make_methods(weights) -> dict:
-    """{name: backend}: the net first (if weights), then the fill baselines."""
+def make_methods(weights, head_path=None, diffusers=None) -> tuple[dict, object]:
+    """({name: (backend, with_lights)}, light head or None): the net (if weights) and
+    net+lights (if a head), the fill baselines, push_pull+lights, diffusers (if asked)."""
     backends = importlib.import_module("comgs_dr.lighting.backends")
-    methods = {}
+    lights = importlib.import_module("comgs_dr.lighting.lights")
+    methods, head = {}, None
+    if head_path != "none":
+        hp = Path(head_path) if head_path else lights.DEFAULT_HEAD
+        if hp.is_file():
+            head = lights.load_head(hp)
+        elif head_path:
+            raise FileNotFoundError(f"--light-head: no such file {hp}")
     if weights is None and Path(backends.DEFAULT_WEIGHTS).is_file():
         weights = backends.DEFAULT_WEIGHTS
     if weights:
-        methods["net"] = backends.load_network_backend(weights)
+        net = backends.load_network_backend(weights)
+        methods["net"] = (net, False)
+        if head is not None:
+            methods["net+lights"] = (net, True)
     else:
         print("no --weights and no shipped weights: evaluating the baselines only")
-    for kind in BASELINES:
-        methods[kind] = backends.FillBackend(kind)
-    return methods
+    for kind in BASELINES[:3]:
+        methods[kind] = (backends.FillBackend(kind), False)
+        if kind == "push_pull" and head is not None:
+            methods["push_pull+lights"] = (methods[kind][0], True)
+    if diffusers:
+        try:
+            methods["diffusers"] = (backends.DiffusersBackend(diffusers), False)
+        except (ImportError, OSError, ValueError) as exc:
+            print(f"diffusers backend not evaluated: {exc}")
+    return methods, head
+
+
+def ours(methods) -> str | None:
+    return "net+lights" if "net+lights" in methods else "net" if "net" in methods else None
+
+
+def light_metrics(est, gt, alpha, obj_est, obj_gt, obj_mask) -> dict:
+    """Dominant-light angle, light-in-hole flag, relighting PSNR and sun/up ratio error."""
+    from comgs_dr.eval import lighting_metrics as lm
+    from comgs_dr.lighting import hdr
+    out = {"light_angle_deg": None, "light_in_hole": None, "sun_up_log_err": None}
+    lg, le = hdr.extract_lights(gt, k=1), hdr.extract_lights(est, k=1)
+    if lg:
+        d = lg[0]["direction"]
+        h, w = alpha.shape
+        from comgs_dr.core.equirect import equirect_dir_to_uv_np
+        u, v = equirect_dir_to_uv_np(d[None])[0]
+        out["light_in_hole"] = bool(alpha[min(int(v * h), h - 1), min(int(u * w), w - 1)] < 0.5)
+        if le:
+            out["light_angle_deg"] = float(np.degrees(np.arccos(np.clip(
+                float(le[0]["direction"] @ d), -1.0, 1.0))))
+        up = np.array([0.0, 0.0, 1.0])
+        eg, ee = lm.irradiance(gt, up), lm.irradiance(est, up)
+        if eg > 0 and ee > 0:
+            rg, re_ = lm.irradiance(gt, d) / eg, lm.irradiance(est, d) / ee
+            out["sun_up_log_err"] = float(abs(np.log(max(re_, 1e-12) / max(rg, 1e-12))))
+    a, b = hdr.expose(obj_est, 0.0)[:, obj_mask], hdr.expose(obj_gt, 0.0)[:, obj_mask]
+    out["relight_psnr"] = float(10 * np.log10(1.0 / max(float(np.mean((a - b) ** 2)), 1e-10)))
+    return out
 
 
 # ---------------------------------------------------------------------------------------
@@ -124,8 +193,9 @@ def evaluate(args, progress=print) -> dict:
     comgs_dr.set_variant("llvm_ad_rgb")
     pano = importlib.import_module("comgs_dr.lighting.pano_data")
     labels = json.loads(Path(args.labels).read_text()) if args.labels else {}
+    from comgs_dr.lighting import lights as L
     maps = list_maps(args.maps)
-    methods = make_methods(args.weights)
+    methods, head = make_methods(args.weights, args.light_head, args.diffusers)
     h, w = args.res, 2 * args.res
     rng = np.random.default_rng(args.seed)
     sphere = dict(size=args.sphere_size, azimuths=lm.ARRAY_AZIMUTHS, quad_height=args.quad)
@@ -154,21 +224,32 @@ def evaluate(args, progress=print) -> dict:
             rgb = np.where(alpha[..., None] > 0, hdr.expose(gt, 0.0), 0.0).astype(np.float32)
             t1 = time.perf_counter()
             gt_r, smask = lm.render_spheres(gt, **sphere)
+            obj_gt = 0.5 * (gt_r["diffuse"] + gt_r["matte_silver"])
             t_render.append(time.perf_counter() - t1)
-            ests = {}
-            for name, be in methods.items():
+            ests, fused, lobes, t_lobes = {}, {}, None, 0.0
+            for name, (be, with_lights) in methods.items():
                 t1 = time.perf_counter()
-                ldrs = be.complete(rgb, normal, alpha.astype(np.float32),
-                                   evs=completion.DEFAULT_EVS, label=completion.LABELS[label])
-                est = np.asarray(hdr.fuse_brackets(ldrs, completion.DEFAULT_EVS), np.float64)
-                dt = time.perf_counter() - t1
+                if be not in fused:
+                    ldrs = be.complete(rgb, normal, alpha.astype(np.float32),
+                                       evs=completion.DEFAULT_EVS, label=completion.LABELS[label])
+                    fused[be] = (np.asarray(hdr.fuse_brackets(ldrs, completion.DEFAULT_EVS),
+                                            np.float64), time.perf_counter() - t1)
+                est, dt = fused[be]
+                if with_lights:
+                    t1 = time.perf_counter()
+                    if lobes is None:
+                        lobes = L.predict_lobes(rgb, alpha, head, completion.LABELS[label])
+                    est = L.add_lights(est, lobes)[0]
+                    dt += time.perf_counter() - t1
                 est_r, _ = lm.render_spheres(est, **sphere)
                 per = lm.sphere_metrics(est_r, gt_r, smask)
+                obj = 0.5 * (est_r["diffuse"] + est_r["matte_silver"])
                 records.append({"map": path.stem, "mask": j, "coverage": cov, "group": group,
                                 "label": label, "shift": shift, "method": name, "time_s": dt,
                                 "pano_si_rmse": lm.si_rmse(est, gt), "materials": per,
                                 **{k: float(np.mean([per[m][k] for m in per]))
-                                   for k, _ in METRICS}})
+                                   for k, _ in METRICS},
+                                **light_metrics(est, gt, alpha, obj, obj_gt, smask)})
                 ests[name] = (est, est_r)
             if len(examples) < args.examples and (not examples or examples[-1]["map"] != path.stem):
                 examples.append({"map": path.stem, "coverage": cov, "gt": gt, "input": rgb,
@@ -193,41 +274,63 @@ def _median(xs):
     return float(np.median(xs)) if len(xs) else float("nan")
 
 
+def _split(recs, split: str):
+    if split == "all":
+        return recs
+    return [r for r in recs if r["light_in_hole"] is (split == "hole")]
+
+
+def _stats(rs) -> dict:
+    out = {k: _mean([r[k] for r in rs]) for k, _ in METRICS}
+    for k, _ in EXTRA:
+        out[k] = _mean([r[k] for r in rs if r[k] is not None])
+    out["pano_si_rmse"] = _mean([r["pano_si_rmse"] for r in rs])
+    out["si_rmse_median"] = _median([r["si_rmse"] for r in rs])
+    out["n"] = len(rs)
+    return out
+
+
 def summarise(res: dict) -> dict:
     recs, methods = res["records"], res["methods"]
     groups = [g for g, _, _ in GROUPS]
-    per_mat, per_group, overall, timing = {}, {}, {}, {}
+    per_mat, per_group, per_split, overall, timing = {}, {}, {}, {}, {}
     for me in methods:
         rm = [r for r in recs if r["method"] == me]
         timing[me] = {"mean_s": _mean([r["time_s"] for r in rm]),
                       "median_s": _median([r["time_s"] for r in rm])}
-        overall[me] = {k: _mean([r[k] for r in rm]) for k, _ in METRICS}
-        overall[me]["pano_si_rmse"] = _mean([r["pano_si_rmse"] for r in rm])
-        overall[me]["si_rmse_median"] = _median([r["si_rmse"] for r in rm])
+        overall[me] = _stats(rm)
+        for sp in SPLITS[1:]:
+            per_split[(me, "all", sp)] = _stats(_split(rm, sp))
         for g in groups:
             rg = [r for r in rm if r["group"] == g]
-            per_group[(me, g)] = {k: _mean([r[k] for r in rg]) for k, _ in METRICS}
-            per_group[(me, g)]["pano_si_rmse"] = _mean([r["pano_si_rmse"] for r in rg])
-            per_group[(me, g)]["si_rmse_median"] = _median([r["si_rmse"] for r in rg])
-            per_group[(me, g)]["n"] = len(rg)
+            per_group[(me, g)] = _stats(rg)
+            for sp in SPLITS[1:]:
+                per_split[(me, g, sp)] = _stats(_split(rg, sp))
             for mat in ("mirror", "matte_silver", "diffuse"):
                 per_mat[(me, g, mat)] = {k: _mean([r["materials"][mat][k] for r in rg])
                                          for k, _ in METRICS}
     wins, n = 0, 0
-    base = [b for b in methods if b != "net"]
-    if "net" in methods and base:
+    me_ours = ours(methods)
+    base = [b for b in methods if b in BASELINES]
+    if me_ours and base:
         for g in groups:
-            if per_group[("net", g)]["n"] == 0:
+            if per_group[(me_ours, g)]["n"] == 0:
                 continue
             for k in ("si_rmse", "angular_deg"):
                 n += 1
-                wins += all(per_group[("net", g)][k] < per_group[(b, g)][k] for b in base)
+                wins += all(per_group[(me_ours, g)][k] < per_group[(b, g)][k] for b in base)
     best = min(base, key=lambda b: overall[b]["si_rmse"]
                if np.isfinite(overall[b]["si_rmse"]) else np.inf) if base else None
-    return {"per_material": per_mat, "per_group": per_group, "overall": overall,
-            "timing": timing, "net_wins": wins, "n_comparisons": n, "best_baseline": best,
-            "si_rmse_net": overall.get("net", {}).get("si_rmse", float("nan")),
-            "si_rmse_best_baseline": overall[best]["si_rmse"] if best else float("nan")}
+    vis = {me: per_split[(me, "all", "visible")]["light_angle_deg"] for me in methods}
+    best_vis = min((b for b in base if np.isfinite(vis[b])), key=lambda b: vis[b], default=None)
+    return {"per_material": per_mat, "per_group": per_group, "per_split": per_split,
+            "overall": overall, "timing": timing, "net_wins": wins, "n_comparisons": n,
+            "ours": me_ours, "best_baseline": best,
+            "si_rmse_net": overall.get(me_ours, {}).get("si_rmse", float("nan")),
+            "si_rmse_best_baseline": overall[best]["si_rmse"] if best else float("nan"),
+            "light_angle_visible_ours": vis.get(me_ours, float("nan")),
+            "light_angle_visible_best_baseline": vis[best_vis] if best_vis else float("nan"),
+            "best_baseline_light_angle": best_vis}
 
 
 def print_tables(res: dict, s: dict, args):
@@ -237,7 +340,7 @@ def print_tables(res: dict, s: dict, args):
           f"{args.masks}, eval {args.res}x{2 * args.res}, spheres {args.sphere_size}² x 4 "
           f"azimuths, quadrature {args.quad}x{2 * args.quad}")
     print(f"samples kept {len(res['records']) // max(len(methods), 1)}, masks < 40 % skipped "
-          f"{res['skipped']} of {res['n_bank']}\n")
+          f"{res['skipped']} of {res['n_bank']}; ours = {s['ours']}\n")
     print("### Per method x coverage group x material (means)\n")
     print("| method | coverage | material | n | " + " | ".join(h for _, h in METRICS) + " |")
     print("|---|---|---|---|" + "---|" * len(METRICS))
@@ -250,21 +353,26 @@ def print_tables(res: dict, s: dict, args):
                 v = s["per_material"][(me, g, mat)]
                 print(f"| {me} | {g} % | {mat} | {n} | "
                       + " | ".join(f"{v[k]:.4f}" for k, _ in METRICS) + " |")
-    print("\n### Per coverage group, averaged over the 3 materials (+ median si-RMSE: means "
-          "are dominated by the few samples with a sun/lamp in the hole; panorama si-RMSE)\n")
-    print("| coverage | method | n | " + " | ".join(h for _, h in METRICS)
+    print("\n### Per coverage group and dominant-light split (sphere metrics averaged over "
+          "the 3 materials; light angle, relighting PSNR and sun/up error of the dominant "
+          "light; 'visible' = the true dominant light is observed, 'hole' = it is not)\n")
+    cols = METRICS + EXTRA
+    print("| coverage | light | method | n | " + " | ".join(h for _, h in cols)
           + " | median si-RMSE | pano si-RMSE |")
-    print("|---|---|---|" + "---|" * (len(METRICS) + 2))
+    print("|---|---|---|---|" + "---|" * (len(cols) + 2))
     for g in groups + ["all"]:
-        for me in methods:
-            v = s["overall"][me] if g == "all" else s["per_group"][(me, g)]
-            n = (len([r for r in res["records"] if r["method"] == me]) if g == "all"
-                 else v["n"])
-            if not n:
-                continue
-            print(f"| {g} | {me} | {n} | " + " | ".join(f"{v[k]:.4f}" for k, _ in METRICS)
-                  + f" | {v['si_rmse_median']:.4f} | {v['pano_si_rmse']:.4f} |")
-    print("\n### Time per sample (complete 3 EVs + fuse; sphere renders "
+        for sp in SPLITS:
+            for me in methods:
+                if sp == "all":
+                    v = s["overall"][me] if g == "all" else s["per_group"][(me, g)]
+                else:
+                    v = s["per_split"][(me, g, sp)]
+                if not v["n"]:
+                    continue
+                print(f"| {g} | {sp} | {me} | {v['n']} | "
+                      + " | ".join(f"{v[k]:.4f}" for k, _ in cols)
+                      + f" | {v['si_rmse_median']:.4f} | {v['pano_si_rmse']:.4f} |")
+    print("\n### Time per sample (complete 3 EVs + fuse [+ light head]; sphere renders "
           f"{res['t_render']:.3f} s per sample; mask bank {res['t_masks']:.1f} s)\n")
     print("| method | mean s | median s |\n|---|---|---|")
     for me in methods:
@@ -348,6 +456,9 @@ def main(argv=None) -> dict:
                                  "records": res["records"], "skipped": res["skipped"]},
                                 indent=1))
         print(f"json: {p}")
+    print(f"light_angle_visible ours={s['light_angle_visible_ours']:.4g} "
+          f"best_baseline={s['light_angle_visible_best_baseline']:.4g} "
+          f"({s['best_baseline_light_angle']})")
     line = (f"net_wins={s['net_wins']}/{s['n_comparisons']} si_rmse_net={s['si_rmse_net']:.5g} "
             f"si_rmse_best_baseline={s['si_rmse_best_baseline']:.5g}")
     print(line)

@@ -30,6 +30,7 @@ from comgs_dr.lighting import backends
 from comgs_dr.shading.shade import SAMPLINGS
 from comgs_dr.shading.visibility import KINDS
 from comgs_dr.stages import train_completion
+from comgs_dr.stages import train_light_head
 from comgs_dr.stages.compose import PRESETS as COMPOSE_PRESETS
 from comgs_dr.stages.compose import compose
 from comgs_dr.stages.decompose import MaterialConfig, train_material
@@ -524,6 +525,20 @@ def _cmd_train_completion(args) -> int:
     return train_completion.run_from_args(args)
 
 
+def _add_train_light_head(sub) -> None:
+    p = sub.add_parser("train-light-head", help="train the light head (power of clipped lights)",
+                       description="Generate clipped-light regions from the real maps minus "
+                                   "the held-out ones, sunsky skies and path-traced rooms at "
+                                   "several sizes, and fit the light head (minutes).")
+    train_light_head.add_arguments(p)
+    p.set_defaults(func=_cmd_train_light_head)
+
+
+def _cmd_train_light_head(args) -> int:
+    set_variant("llvm_ad_rgb")
+    return train_light_head.run_from_args(args)
+
+
 # ----------------------------------------------------------------------------- compose
 
 def _add_compose(sub) -> None:
@@ -637,7 +652,8 @@ def _cmd_render_comp(args) -> int:
 # ----------------------------------------------------------------------------- entry point
 
 _SUBCOMMANDS = (_add_make_dataset, _add_demo, _add_report, _add_reconstruct, _add_render, _add_export_mesh, _add_decompose,
-                _add_relight, _add_estimate_light, _add_train_completion, _add_compose,
+                _add_relight, _add_estimate_light, _add_train_completion, _add_train_light_head,
+                _add_compose,
                 _add_render_comp)
 
 

@@ -67,11 +67,13 @@ def test_lighting_eval_smoke(tmp_path, pano_data, variant, capsys):
     net = CompletionNet(CompletionConfig(base_channels=8, levels=2, channel_mults=(1, 2, 2),
                                          embed_dim=16, groups=4))
     weights = save_weights(net, tmp_path / "net.pt")
+    from comgs_dr.lighting.lights import LightHead, save_head
+    head = save_head(LightHead(), tmp_path / "head.pt")       # untrained: gain softplus(~0)
 
     out = _bench().main(["--maps", str(maps), "--weights", str(weights), "--quick",
                          "--labels", str(tmp_path / "labels.json"), "--out",
                          str(tmp_path / "fig"), "--json", str(tmp_path / "r.json"),
-                         "--examples", "1"])
+                         "--examples", "1", "--light-head", str(head)])
     lines = capsys.readouterr().out.strip().splitlines()
     m = re.fullmatch(r"net_wins=(\d+)/(\d+) si_rmse_net=(\S+) si_rmse_best_baseline=(\S+)",
                      lines[-1])
@@ -80,12 +82,19 @@ def test_lighting_eval_smoke(tmp_path, pano_data, variant, capsys):
     assert n == 2 * 3 and 0 <= k <= n                 # 3 coverage groups x 2 metrics
     assert np.isfinite(float(m.group(3))) and np.isfinite(float(m.group(4)))
     assert out["skipped"] == 1                        # --quick: 2 masks per map, 30 % skipped
-    assert len(out["records"]) == 3 * 4               # kept masks x methods
+    methods = ["net", "net+lights", "mean", "push_pull", "push_pull+lights", "sh"]
+    assert [r["method"] for r in out["records"][:6]] == methods
+    assert len(out["records"]) == 3 * len(methods)    # kept masks x methods
+    assert out["ours"] == "net+lights"
+    assert re.fullmatch(r"light_angle_visible ours=\S+ best_baseline=\S+ \(\S+\)", lines[-2])
     for r in out["records"]:
         assert all(np.isfinite(r[key]) for key in ("si_rmse", "angular_deg", "nrmse",
-                                                    "pano_si_rmse", "time_s"))
+                                                    "pano_si_rmse", "time_s",
+                                                    "relight_psnr"))
+        assert r["light_angle_deg"] is None or 0 <= r["light_angle_deg"] <= 180
+        assert r["light_in_hole"] in (None, True, False)
     assert {r["label"] for r in out["records"]} == {"indoor", "outdoor"}
     assert (tmp_path / "fig" / "lighting_eval.png").stat().st_size > 0
     dump = json.loads((tmp_path / "r.json").read_text())
-    assert dump["summary"]["net_wins"] == k and len(dump["records"]) == 12
-    assert any(l.startswith("| coverage | method |") for l in lines)
+    assert dump["summary"]["net_wins"] == k and len(dump["records"]) == 18
+    assert any(l.startswith("| coverage | light | method |") for l in lines)

@@ -35,12 +35,23 @@ from comgs_dr.lighting.hdr import area_resize_equirect
 
 log = logging.getLogger(__name__)
 
-__all__ = ["auto_exposure", "load_map", "sunsky_panorama", "room_panorama", "rotate_u"]
+__all__ = ["HELD_OUT", "label_of", "auto_exposure", "load_map", "sunsky_panorama", "room_panorama", "rotate_u"]
 
+# evaluation maps of shared/data/hdri, never trained on: two Poly Haven maps and three of the
+# Blender maps (blender_sunrise, the only shared map with a clear sun, is also the end-to-end
+# test's sky)
+HELD_OUT = ("forest_slope_1k", "st_fagans_interior_1k", "blender_sunrise", "blender_interior",
+            "blender_courtyard")
+INDOOR_HINTS = ("interior", "warehouse", "room", "indoor", "studio", "hall", "office")
 GENERATOR_VERSION = 2      # bump when a generator's output changes (training-data cache key)
 KEY = 0.18
 
 
+
+
+def label_of(name: str) -> str:
+    """'indoor' or 'outdoor' from a map's file stem (``INDOOR_HINTS``)."""
+    return "indoor" if any(h in name.lower() for h in INDOOR_HINTS) else "outdoor"
 
 
 def auto_exposure(hdr: np.ndarray, key: float = KEY) -> float:

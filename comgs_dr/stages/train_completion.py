@@ -57,8 +57,7 @@ from comgs_dr.train.interrupt import CheckpointClock, stop_signals
 
 log = logging.getLogger(__name__)
 
-HELD_OUT = ("forest_slope_1k", "st_fagans_interior_1k")   # evaluation maps, never trained on
-INDOOR_HINTS = ("interior", "warehouse", "room", "indoor", "studio", "hall", "office")
+HELD_OUT = P.HELD_OUT
 
 
 @dataclass
@@ -80,6 +79,8 @@ class TrainCompletionConfig:
     lr: float = 1e-3
     warmup: int = 200
     aug_ev: float = 1.5
+    wb_jitter: float = 0.1                 # std of the log per-channel white-balance gain
+    init: Path | None = None               # weights to start from (fine-tuning)
     lowfreq: float = 0.5                   # weight of each low-frequency term of completion_loss
     base_channels: int = 24
     # "push_pull": a residual on the push-pull fill. Measured (benchmarks/lighting_eval.py, 2
@@ -140,10 +141,6 @@ def _load_checkpoint(cfg) -> dict | None:
     return state
 
 
-def _label_of(name: str) -> int:
-    return C.LABELS["indoor" if any(h in name.lower() for h in INDOOR_HINTS) else "outdoor"]
-
-
 def build_data(cfg: TrainCompletionConfig, progress: bool = True) -> dict:
     """Generate (or load the cached) training set: maps [N, H, W, 3], labels [N], source [N]
     (0 Poly Haven, 1 sky, 2 room), masks [M, H, W], normals [M, H, W, 3]."""
@@ -164,7 +161,7 @@ def build_data(cfg: TrainCompletionConfig, progress: bool = True) -> dict:
     for p in files:
         if p.stem in cfg.held_out:
             continue
-        maps.append(P.load_map(p, h, w)), labels.append(_label_of(p.stem))
+        maps.append(P.load_map(p, h, w)), labels.append(C.LABELS[P.label_of(p.stem)])
         source.append(0), names.append(p.stem)
     if not maps:
         log.warning("no Poly Haven maps found in %s: training on procedural data only", mdir)
@@ -216,6 +213,9 @@ class Sampler:
             if rng.random() < 0.5:
                 hdr = hdr[:, ::-1]
             hdr = hdr * self.k[i] * 2.0 ** rng.uniform(-self.cfg.aug_ev, self.cfg.aug_ev)
+            if self.cfg.wb_jitter > 0:   # white balance: per-channel gain, luminance kept
+                g = np.exp(rng.normal(0.0, self.cfg.wb_jitter, 3))
+                hdr = hdr * (g / float(g @ colorspace.LUMA)).astype(np.float32)
             sh = rng.integers(W)
             a = P.rotate_u(d["masks"][j], sh)
             nn = P.rotate_u(d["normals"][j].astype(np.float32), sh)
@@ -279,6 +279,9 @@ def train(cfg: TrainCompletionConfig, progress: bool = True, command: str | None
     net_cfg = C.CompletionConfig(base_channels=cfg.base_channels, prior=cfg.prior,
                                  train_resolution=(cfg.height, cfg.width), **cfg.net)
     model = C.CompletionNet(net_cfg)
+    if cfg.init is not None:
+        model.load_state_dict(C.load_weights(cfg.init, net_cfg).state_dict())
+        log.info("initialised from %s", cfg.init)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999), weight_decay=0.01)
     sampler = Sampler(data, cfg, cfg.seed + 7)
     val = Sampler(data, cfg, 12345)
@@ -379,6 +382,13 @@ def add_arguments(ap) -> None:
     ap.add_argument("--prior", choices=("push_pull", "none"), default=d.prior,
                     help="predict a residual on the push-pull fill, or the panorama directly "
                          "(none, default: the shipped weights)")
+    ap.add_argument("--wb-jitter", type=float, default=d.wb_jitter,
+                    help="std of the log per-channel white-balance gain (augmentation)")
+    ap.add_argument("--step1-frac", type=float, default=d.step1_frac,
+                    help="fraction of the budget spent on EV-0 completion before EV training")
+    ap.add_argument("--warmup", type=int, default=d.warmup, help="warm-up steps")
+    ap.add_argument("--init", type=Path, default=None,
+                    help="start from these weights (same architecture): fine-tuning")
     ap.add_argument("--seed", type=int, default=d.seed)
     ap.add_argument("--threads", type=int, default=d.threads)
     ap.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every, metavar="STEPS",
@@ -397,7 +407,8 @@ def run_from_args(args) -> int:
         n_masks=args.masks, room_spp=args.room_spp, minutes=args.minutes,
         max_steps=args.max_steps, batch=args.batch, lr=args.lr, base_channels=args.channels,
         lowfreq=args.lowfreq,
-        prior=args.prior,
+        prior=args.prior, wb_jitter=args.wb_jitter, step1_frac=args.step1_frac,
+        warmup=args.warmup, init=args.init,
         seed=args.seed, threads=args.threads, checkpoint_every=args.checkpoint_every,
         checkpoint_every_s=args.checkpoint_every_s)
     info = train(cfg, progress=not args.quiet, command=" ".join(sys.argv))

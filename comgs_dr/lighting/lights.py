@@ -1,0 +1,301 @@
+"""Dominant lights as spherical-Gaussian lobes, and a learned head for the power of clipped ones.
+
+Paper, Appendix "Details of Lighting Estimation": strong lights are extracted after the fact
+(luminance > mean + 5σ) and re-added to the completed map. With LDR captures that re-adds a
+*clipped* light: a sun seen at EV 0 is stored at the white level, 10³–10⁵× below its radiance,
+and the EV −2.5/−5 completions can bring back at most 32× (``hdr.saturation_limit``). Composited
+objects then get washed-out shading and weak shadows. This module adds what the brackets
+cannot:
+
+* **Lobes** (``sg_integral``, ``sg_sharpness``, ``render_lobes``): an SG
+  L(ω) = a·exp(λ(ω·μ − 1)) with ∫ = a·2π/λ·(1 − e^{−2λ}); ``render_lobes`` draws lobes into
+  an equirect map with their exact power Σ L dω (normalised on the pixel grid, so a lobe
+  narrower than a pixel keeps its power).
+* **Clipped regions** (``clipped_regions``): connected components (``hdr.label_equirect``:
+  seam and poles merged) of observed EV-0 pixels whose max channel is ≥ ``sat``, largest
+  observed power first.
+* **Features** (``region_features``, ``FEATURES``): scale-free descriptors of a region and of
+  the observed panorama around it (its solid angle, elevation, how fully it is clipped, the
+  brightness, colour and clipping of rings around it, the label, the image resolution).
+* **The head** (``LightHead``): a small MLP from the features to log(P_true / P_seen), the
+  ratio of the region's true luminance power to what the EV-0 pixels hold, ≥ 0 (softplus:
+  clipping only removes light). Trained by ``comgs train-light-head`` on the training maps'
+  true powers (``stages.train_light_head``). An MLP on hand-made features, not a CNN: the
+  quantity is one number per region, the training set is a few thousand regions, and it must
+  generalise from 8 real maps plus procedural skies.
+* ``add_lights``: the fused HDR map plus, per clipped region, a lobe at the region's
+  luminance-weighted centroid with the region's solid angle and the *missing* power
+  (predicted power − the fused map's power there), coloured like the unclipped ring around
+  the region (the sun's glow), white where no ring pixel is seen.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from comgs_dr.core.colorspace import LUMA, srgb_decode
+from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
+from comgs_dr.lighting.hdr import label_equirect
+
+__all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_regions",
+           "FEATURES", "region_features", "LightHead", "save_head", "load_head",
+           "DEFAULT_HEAD", "predict_lobes", "add_lights", "SAT"]
+
+SAT = 0.98                 # EV-0 max channel at/above which a pixel counts as clipped
+MAX_LOG_GAIN = 25.0       # P_true / P_seen ≤ e^25 ≈ 7e10 (a real sun at EV 0: ~1e5)
+MAX_REGIONS = 8            # regions per panorama given to the head (largest observed power)
+BANDS_DEG = ((0.0, 3.0), (3.0, 10.0), (10.0, 30.0))   # rings beyond the region's radius
+DEFAULT_HEAD = Path(__file__).parent / "weights" / "light_head.pt"
+_FORMAT = "comgs_dr.lighting.light_head/1"
+
+
+# ---- Spherical Gaussians ----
+
+def sg_integral(sharpness) -> np.ndarray:
+    """∫ exp(λ(ω·μ − 1)) dω = 2π/λ·(1 − e^{−2λ}) (→ 4π as λ → 0)."""
+    lam = np.maximum(np.asarray(sharpness, np.float64), 1e-12)
+    return 2.0 * np.pi * -np.expm1(-2.0 * lam) / lam
+
+
+def sg_sharpness(solid_angle) -> np.ndarray:
+    """λ whose unit-amplitude SG integrates to ``solid_angle`` (0 < Ω < 4π), by bisection in
+    log λ (the integral is monotone in λ)."""
+    om = np.asarray(solid_angle, np.float64)
+    if not np.all((om > 0) & (om < 4 * np.pi)):
+        raise ValueError(f"sg_sharpness: solid angles must lie in (0, 4π), got {om}")
+    lo, hi = np.full(om.shape, -12.0), np.full(om.shape, 30.0)
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        big = sg_integral(np.exp(mid)) > om          # too wide: sharpen
+        lo, hi = np.where(big, mid, lo), np.where(big, hi, mid)
+    return np.exp(0.5 * (lo + hi))
+
+
+def render_lobes(lobes, h: int, w: int) -> np.ndarray:
+    """[h, w, 3] equirect radiance of lobes (dicts with ``direction`` [3], ``sharpness``,
+    ``rgb_power`` [3]); each lobe is normalised on the pixel grid to Σ L dω = rgb_power."""
+    out = np.zeros((h, w, 3))
+    if not lobes:
+        return out
+    d = equirect_directions(h, w)                                             # [h, w, 3]
+    dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))                    # [h, w]
+    for lb in lobes:
+        mu = np.asarray(lb["direction"], np.float64)
+        mu = mu / np.linalg.norm(mu)
+        g = np.exp(float(lb["sharpness"]) * (d @ mu - 1.0))                   # [h, w]
+        if (g * dw).sum() <= 0:                     # narrower than the grid: nearest pixel
+            g = (d @ mu >= (d @ mu).max()).astype(np.float64)
+        out += (g / (g * dw).sum())[..., None] * np.asarray(lb["rgb_power"], np.float64)
+    return out
+
+
+# ---- Clipped regions and their features ----
+
+@dataclass
+class Region:
+    pixels: np.ndarray        # [H, W] bool
+    direction: np.ndarray     # [3] unit, luminance·dω-weighted centroid
+    solid_angle: float        # sr
+    seen_power: np.ndarray    # [3] Σ unexpose(ldr) dω over the region (EV-0 radiance units)
+
+
+def _unit(v):
+    n = np.linalg.norm(v)
+    return v / n if n > 0 else np.array([0.0, 0.0, 1.0])
+
+
+def _check(ldr, mask):
+    ldr = np.asarray(ldr, np.float64)
+    mask = np.asarray(mask, np.float64)
+    mask = mask[..., 0] if mask.ndim == 3 else mask
+    if ldr.ndim != 3 or ldr.shape[-1] != 3 or mask.shape != ldr.shape[:2]:
+        raise ValueError(f"lights: need an [H, W, 3] EV-0 panorama and an [H, W] mask, got "
+                         f"{ldr.shape} and {mask.shape}")
+    if not (np.isfinite(ldr).all() and np.isfinite(mask).all()):
+        raise ValueError("lights: the panorama or the mask holds NaN/Inf values")
+    return np.clip(ldr, 0.0, 1.0), mask > 0.5
+
+
+def clipped_regions(ldr, mask, sat: float = SAT, max_regions: int = MAX_REGIONS) -> list:
+    """Connected regions of observed pixels with max channel ≥ ``sat`` in the EV-0 LDR
+    panorama ``ldr`` [H, W, 3] (mask [H, W], 1 = observed), largest seen power first."""
+    ldr, seen = _check(ldr, mask)
+    h, w = seen.shape
+    clipped = seen & (ldr.max(-1) >= sat)
+    lab, n = label_equirect(clipped)
+    if n == 0:
+        return []
+    dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
+    lin = srgb_decode(ldr)                                                    # [H, W, 3]
+    lum = lin @ LUMA
+    d = equirect_directions(h, w)
+    flat = lab.ravel()
+    area = np.bincount(flat, dw.ravel(), n + 1)
+    power = np.stack([np.bincount(flat, (lin[..., c] * dw).ravel(), n + 1) for c in range(3)], -1)
+    wl = (lum * dw).ravel()
+    dsum = np.stack([np.bincount(flat, d[..., c].ravel() * wl, n + 1) for c in range(3)], -1)
+    order = np.argsort(-(power @ LUMA)[1:], kind="stable")[:max_regions] + 1
+    return [Region(lab == i, _unit(dsum[i]), float(area[i]), power[i].copy()) for i in order]
+
+
+FEATURES = (["log_solid_angle", "log_pixel_solid_angle", "elevation", "abs_elevation",
+             "outdoor", "indoor", "unknown", "log_regions", "clipped_fraction",
+             "fully_clipped", "compactness"]
+            + [f"ring{i}_{k}" for i in range(len(BANDS_DEG))
+               for k in ("seen", "clipped", "log_lum", "blue")]
+            + ["log_mean_lum", "log_upper_lum", "log_lower_lum", "coverage"])
+
+
+def _mean_lum(lum, sel, dw) -> float:
+    wgt = (sel * dw).sum()
+    return float((lum * sel * dw).sum() / wgt) if wgt > 0 else 0.0
+
+
+def region_features(ldr, mask, regions, label: int = 2, sat: float = SAT) -> np.ndarray:
+    """[R, len(FEATURES)] float32 descriptors of ``regions`` (``clipped_regions``) in the EV-0
+    panorama; luminances are EV-0 radiance (white level 1), logs of (x + 1e-3)."""
+    ldr, seen = _check(ldr, mask)
+    h, w = seen.shape
+    dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
+    d = equirect_directions(h, w)
+    lin = srgb_decode(ldr)
+    lum = lin @ LUMA
+    clipped = seen & (ldr.max(-1) >= sat)
+    unclipped = seen & ~clipped
+    seen_area = float((seen * dw).sum())
+    up = d[..., 2] > 0
+    glob = [np.log(_mean_lum(lum, unclipped, dw) + 1e-3),
+            np.log(_mean_lum(lum, unclipped & up, dw) + 1e-3),
+            np.log(_mean_lum(lum, unclipped & ~up, dw) + 1e-3), seen_area / (4 * np.pi)]
+    onehot = np.eye(3)[int(label)]
+    rows = []
+    for r in regions:
+        cosang = np.clip(d @ r.direction, -1.0, 1.0)
+        ang = np.degrees(np.arccos(cosang))                                  # [H, W]
+        radius = np.degrees(np.sqrt(r.solid_angle / np.pi))
+        rmax = float(ang[r.pixels].max())
+        f = [np.log(r.solid_angle), np.log(4 * np.pi / (h * w)),
+             r.direction[2], abs(r.direction[2]), *onehot, np.log1p(len(regions)),
+             float((clipped * dw).sum()) / max(seen_area, 1e-12),
+             float((r.pixels & (ldr.min(-1) >= sat)).sum()) / max(int(r.pixels.sum()), 1),
+             r.solid_angle / (2 * np.pi * (1 - np.cos(np.radians(min(max(rmax, 1e-3), 180.0)))))]
+        for lo, hi in BANDS_DEG:
+            band = (ang >= radius + lo) & (ang < radius + hi) & ~r.pixels
+            ba = float((band * dw).sum())
+            bs = band & seen
+            bu = band & unclipped
+            rgb = (lin * (bu * dw)[..., None]).sum((0, 1))
+            f += [float((bs * dw).sum()) / max(ba, 1e-12),
+                  float((band & clipped).sum()) / max(int(bs.sum()), 1),
+                  np.log(_mean_lum(lum, bu, dw) + 1e-3),
+                  float(rgb[2] / rgb.sum()) if rgb.sum() > 0 else 1.0 / 3.0]
+        rows.append(f + glob)
+    return np.asarray(rows, np.float32).reshape(len(regions), len(FEATURES))
+
+
+def ring_colour(ldr, mask, region: Region, sat: float = SAT, max_deg: float = 10.0):
+    """[3] chromaticity (luminance 1) of the unclipped observed pixels within ``max_deg`` of
+    the region (the glow around a sun, the wall around a lamp); white if none is seen."""
+    ldr, seen = _check(ldr, mask)
+    h, w = seen.shape
+    d = equirect_directions(h, w)
+    ang = np.degrees(np.arccos(np.clip(d @ region.direction, -1.0, 1.0)))
+    radius = np.degrees(np.sqrt(region.solid_angle / np.pi))
+    sel = seen & (ldr.max(-1) < sat) & (ang < radius + max_deg) & ~region.pixels
+    dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
+    rgb = (srgb_decode(ldr) * (sel * dw)[..., None]).sum((0, 1))
+    lum = float(rgb @ LUMA)
+    return rgb / lum if lum > 0 else np.ones(3)
+
+
+# ---- The head ----
+
+class LightHead(nn.Module):
+    """MLP: standardised features [B, F] -> log gain [B] ≥ 0 (softplus)."""
+
+    def __init__(self, n_features: int = len(FEATURES), hidden: int = 64):
+        super().__init__()
+        self.register_buffer("mean", torch.zeros(n_features))
+        self.register_buffer("std", torch.ones(n_features))
+        self.mlp = nn.Sequential(nn.Linear(n_features, hidden), nn.SiLU(),
+                                 nn.Linear(hidden, hidden), nn.SiLU(), nn.Linear(hidden, 1))
+        self.hidden = hidden
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return nn.functional.softplus(self.mlp((x - self.mean) / self.std)[..., 0])
+
+
+def save_head(head: LightHead, path, info: dict | None = None) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"format": _FORMAT, "features": list(FEATURES), "hidden": head.hidden,
+                "state_dict": {k: v.detach().cpu() for k, v in head.state_dict().items()},
+                "info": info or {}}, path)
+    return path
+
+
+def load_head(path=DEFAULT_HEAD) -> LightHead:
+    """LightHead (eval mode) from ``save_head``; FileNotFoundError if missing, ValueError for
+    another format or another feature list."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"light head weights not found: {path}")
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any decoding failure means a bad file
+        raise ValueError(f"{path}: not a readable light-head file ({exc})") from exc
+    if not isinstance(ck, dict) or ck.get("format") != _FORMAT:
+        raise ValueError(f"{path}: not a light-head file (format {_FORMAT!r} expected)")
+    if ck.get("features") != list(FEATURES):
+        raise ValueError(f"{path}: made for other features; retrain with comgs train-light-head")
+    head = LightHead(len(FEATURES), int(ck["hidden"]))
+    head.load_state_dict(ck["state_dict"])
+    return head.eval()
+
+
+@torch.no_grad()
+def predict_lobes(ldr, mask, head: LightHead, label: int = 2, sat: float = SAT,
+                  max_regions: int = MAX_REGIONS) -> list[dict]:
+    """Lobes of the clipped regions of the EV-0 panorama: ``direction``, ``solid_angle``,
+    ``sharpness``, ``gain`` (predicted P_true / P_seen), ``luminance_power`` (predicted),
+    ``colour`` (ring chromaticity) and ``region`` ([H, W] bool)."""
+    regions = clipped_regions(ldr, mask, sat, max_regions)
+    if not regions:
+        return []
+    x = torch.from_numpy(region_features(ldr, mask, regions, label, sat))
+    gain = np.exp(np.clip(np.nan_to_num(head(x).numpy().astype(np.float64)), 0.0, MAX_LOG_GAIN))
+    out = []
+    for r, g in zip(regions, gain):
+        om = min(r.solid_angle, 4 * np.pi * 0.999)
+        out.append({"direction": r.direction, "solid_angle": r.solid_angle,
+                    "sharpness": float(sg_sharpness(om)), "gain": float(g),
+                    "luminance_power": float(g * (r.seen_power @ LUMA)),
+                    "colour": ring_colour(ldr, mask, r, sat), "region": r.pixels})
+    return out
+
+
+def add_lights(hdr_map, lobes, dominant_only: bool = False) -> tuple[np.ndarray, list[dict]]:
+    """The fused map [H, W, 3] plus each lobe's missing power: P_pred − (the map's luminance
+    power inside the lobe's region), ≥ 0, as an SG of the region's solid angle, coloured by
+    the lobe's ``colour``. Returns (map, the lobes as added: direction, sharpness,
+    solid_angle, rgb_power, amplitude)."""
+    img = np.asarray(hdr_map, np.float64)
+    if img.ndim != 3 or img.shape[-1] != 3 or not np.isfinite(img).all():
+        raise ValueError(f"add_lights: need a finite [H, W, 3] map, got {img.shape}")
+    h, w = img.shape[:2]
+    dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
+    added = []
+    for lb in (lobes[:1] if dominant_only else lobes):
+        have = float(((img @ LUMA) * dw * lb["region"]).sum())
+        missing = max(lb["luminance_power"] - have, 0.0)
+        if missing <= 0:
+            continue
+        rgb = missing * np.asarray(lb["colour"], np.float64)
+        amp = rgb / float(sg_integral(lb["sharpness"]))
+        added.append({"direction": np.asarray(lb["direction"]), "sharpness": lb["sharpness"],
+                      "solid_angle": lb["solid_angle"], "rgb_power": rgb, "amplitude": amp})
+    return img + render_lobes(added, h, w), added

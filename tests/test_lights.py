@@ -1,0 +1,153 @@
+"""Light lobes and the light head (lighting.lights): SG integrals, exact lobe power, clipped
+regions, features on extreme inputs, re-adding missing power, weights files."""
+import numpy as np
+import pytest
+import torch
+
+from comgs_dr.core.colorspace import LUMA
+from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
+from comgs_dr.lighting import lights as L
+from comgs_dr.lighting.hdr import expose
+
+
+def _dw(h, w):
+    return np.broadcast_to(pixel_solid_angles(h, w), (h, w))
+
+
+@pytest.mark.parametrize("lam", [1e-3, 0.3, 2.0, 40.0, 900.0])
+def test_sg_integral_matches_quadrature_and_inverts(lam):
+    h, w = 512, 1024
+    d = equirect_directions(h, w)
+    g = np.exp(lam * (d[..., 2] - 1.0))                      # axis +Z
+    quad = float((g * _dw(h, w)).sum())
+    assert float(L.sg_integral(lam)) == pytest.approx(quad, rel=2e-3)
+    assert float(L.sg_sharpness(L.sg_integral(lam))) == pytest.approx(lam, rel=1e-6)
+
+
+def test_sg_sharpness_rejects_impossible_solid_angles():
+    for om in (0.0, -1.0, 4 * np.pi, np.nan):
+        with pytest.raises(ValueError, match="solid angles"):
+            L.sg_sharpness(om)
+
+
+@pytest.mark.parametrize("lam", [0.5, 50.0, 1e7])          # 1e7: far narrower than a pixel
+def test_render_lobes_keeps_power(lam):
+    h, w = 32, 64
+    d = np.array([0.3, -0.5, 0.8])
+    power = np.array([3.0, 2.0, 1e6])
+    img = L.render_lobes([{"direction": d, "sharpness": lam, "rgb_power": power}], h, w)
+    assert np.isfinite(img).all() and img.min() >= 0
+    np.testing.assert_allclose((img * _dw(h, w)[..., None]).sum((0, 1)), power, rtol=1e-9)
+    peak = np.unravel_index(np.argmax(img[..., 0]), (h, w))
+    assert equirect_directions(h, w)[peak] @ (d / np.linalg.norm(d)) > 0.97
+
+
+def _sun_map(h=64, w=128, sun=(0.6, 0.2, 0.35), radiance=5e4):
+    d = equirect_directions(h, w)
+    img = 0.3 + 0.5 * np.clip(d[..., 2:], 0, 1) * np.array([0.5, 0.7, 1.0])
+    s = np.asarray(sun) / np.linalg.norm(sun)
+    img[d @ s > np.cos(np.radians(3.0))] = radiance
+    return img, s
+
+
+def test_clipped_regions_find_the_sun_and_ignore_unobserved_pixels():
+    img, s = _sun_map()
+    ldr = expose(img, 0.0)
+    mask = np.ones(img.shape[:2])
+    regions = L.clipped_regions(ldr, mask)
+    assert len(regions) == 1
+    assert regions[0].direction @ s > np.cos(np.radians(2.0))
+    assert regions[0].seen_power @ LUMA == pytest.approx(regions[0].solid_angle, rel=1e-6)
+    hole = mask * (equirect_directions(64, 128) @ s < 0.9)   # the sun unobserved
+    assert L.clipped_regions(ldr, hole) == []
+
+
+def test_clipped_region_across_the_seam_is_one():
+    h, w = 32, 64
+    ldr = np.full((h, w, 3), 0.3)
+    ldr[10:13, :2] = 1.0
+    ldr[10:13, -2:] = 1.0
+    regions = L.clipped_regions(ldr, np.ones((h, w)))
+    assert len(regions) == 1 and regions[0].pixels.sum() == 12
+    assert abs(regions[0].direction[1]) < 1e-9 and regions[0].direction[0] < 0   # u = 0 is -X
+
+
+@pytest.mark.parametrize("case", ["all_clipped", "one_pixel_at_pole", "no_ring", "black"])
+def test_features_are_finite_on_extreme_panoramas(case):
+    h, w = 32, 64
+    ldr, mask = np.full((h, w, 3), 0.4), np.ones((h, w))
+    if case == "all_clipped":
+        ldr[:] = 1.0
+    elif case == "one_pixel_at_pole":
+        ldr[0, 5] = 1.0
+    elif case == "no_ring":
+        ldr[12:14, 20:22] = 1.0
+        mask[8:18, 14:28] = 0.0
+        mask[12:14, 20:22] = 1.0
+    else:
+        ldr[:] = 0.0
+        ldr[3, 3] = 1.0
+    regions = L.clipped_regions(ldr, mask)
+    assert regions
+    f = L.region_features(ldr, mask, regions, label=1)
+    assert f.shape == (len(regions), len(L.FEATURES)) and np.isfinite(f).all()
+    lobes = L.predict_lobes(ldr, mask, L.LightHead().eval(), label=1)
+    out, added = L.add_lights(expose_back(ldr), lobes)
+    assert np.isfinite(out).all()
+
+
+def expose_back(ldr):
+    from comgs_dr.lighting.hdr import unexpose
+    return unexpose(ldr, 0.0)
+
+
+def test_bad_inputs_raise():
+    with pytest.raises(ValueError, match="NaN"):
+        L.clipped_regions(np.full((8, 16, 3), np.nan), np.ones((8, 16)))
+    with pytest.raises(ValueError, match=r"\[H, W, 3\]"):
+        L.clipped_regions(np.ones((8, 16)), np.ones((8, 16)))
+    with pytest.raises(ValueError, match="finite"):
+        L.add_lights(np.full((8, 16, 3), np.inf), [])
+
+
+class _Gain(torch.nn.Module):
+    """A head that answers a fixed log gain (to test add_lights' bookkeeping)."""
+
+    def __init__(self, g):
+        super().__init__()
+        self.g = g
+
+    def forward(self, x):
+        return torch.full((len(x),), float(self.g))
+
+
+def test_add_lights_restores_the_predicted_power():
+    img, s = _sun_map(radiance=5e4)
+    ldr = expose(img, 0.0)
+    mask = np.ones(img.shape[:2])
+    fused = expose_back(ldr)                                  # the sun clipped at 1
+    dw = _dw(*img.shape[:2])
+    true_p = float(((img @ LUMA) * dw)[ldr.max(-1) >= L.SAT].sum())
+    seen_p = float(((fused @ LUMA) * dw)[ldr.max(-1) >= L.SAT].sum())
+    lobes = L.predict_lobes(ldr, mask, _Gain(np.log(true_p / seen_p)))
+    assert lobes[0]["luminance_power"] == pytest.approx(true_p, rel=1e-5)
+    out, added = L.add_lights(fused, lobes)
+    total = float(((out @ LUMA) * dw).sum())
+    assert total == pytest.approx(float(((img @ LUMA) * dw).sum()), rel=1e-4)
+    assert added[0]["direction"] @ s > np.cos(np.radians(2.0))
+    out2, added2 = L.add_lights(out, [{**lobes[0], "luminance_power": 0.5 * true_p}])
+    assert added2 == [] and np.array_equal(out2, out)         # never removes light
+
+
+def test_head_weights_round_trip_and_errors(tmp_path):
+    head = L.LightHead()
+    torch.nn.init.normal_(head.mlp[0].weight)
+    p = L.save_head(head, tmp_path / "h.pt", {"note": 1})
+    back = L.load_head(p)
+    x = torch.randn(5, len(L.FEATURES))
+    assert torch.equal(back(x), head.eval()(x))
+    with pytest.raises(FileNotFoundError):
+        L.load_head(tmp_path / "missing.pt")
+    (tmp_path / "bad.pt").write_bytes(b"not torch")
+    with pytest.raises(ValueError, match="not a readable"):
+        L.load_head(tmp_path / "bad.pt")
