@@ -151,3 +151,38 @@ def test_head_weights_round_trip_and_errors(tmp_path):
     (tmp_path / "bad.pt").write_bytes(b"not torch")
     with pytest.raises(ValueError, match="not a readable"):
         L.load_head(tmp_path / "bad.pt")
+
+
+def test_training_targets_are_the_true_power_ratio():
+    """_draws: a full view of a map with a 5e4 sun gives target log(P_true / P_seen)."""
+    from comgs_dr.stages.train_light_head import TrainLightHeadConfig, _draws
+    img, s = _sun_map(radiance=5e4)
+    cfg = TrainLightHeadConfig(aug_ev=0.0, wb_jitter=0.0, full_view=1.0)
+    feats, targets, groups = [], [], []
+    _draws(np.random.default_rng(0), img, np.ones((1, 64, 128)), 3, cfg, 0, 7, feats, targets,
+           groups)
+    assert len(targets) >= 3 and groups[0] == 7
+    from comgs_dr.lighting.pano_data import auto_exposure
+    k = auto_exposure(img)
+    sun = float((((img * k) @ LUMA) * _dw(64, 128))[img[..., 0] > 1e3].sum())
+    seen = float(_dw(64, 128)[img[..., 0] > 1e3].sum())      # clipped at the white level 1
+    assert max(targets) == pytest.approx(np.log(sun / seen), rel=0.05)
+
+
+def test_train_light_head_tiny_run(tmp_path):
+    from comgs_dr.lighting.envmap import write_exr
+    from comgs_dr.stages.train_light_head import TrainLightHeadConfig, train
+    maps = tmp_path / "maps"
+    for name, sun in (("yard", (0.6, 0.2, 0.35)), ("held", (-0.2, 0.5, 0.4))):
+        write_exr(maps / f"{name}.exr", _sun_map(sun=sun)[0].astype(np.float32), "equirect")
+    cfg = TrainLightHeadConfig(out=tmp_path / "head.pt", data_dir=tmp_path / "data",
+                               maps_dir=maps, held_out=("held",), heights=(64,), draws_real=6,
+                               n_sky=2, draws_sky=2, n_rooms=1, draws_room=1, n_masks=4,
+                               steps=30)
+    info = train(cfg, progress=False, command="test")
+    assert info["maps"] == ["yard"] and info["regions"] > 0
+    head = L.load_head(cfg.out)
+    assert np.isfinite(info["history"][-1]["val_huber"])
+    img, _ = _sun_map()
+    lobes = L.predict_lobes(expose(img * 0.05, 0.0), np.ones((64, 128)), head, 0)
+    assert lobes and all(np.isfinite(lb["gain"]) and lb["gain"] >= 1 for lb in lobes)

@@ -282,7 +282,7 @@ def add_lights(hdr_map, lobes, dominant_only: bool = False) -> tuple[np.ndarray,
     """The fused map [H, W, 3] plus each lobe's missing power: P_pred − (the map's luminance
     power inside the lobe's region), ≥ 0, as an SG of the region's solid angle, coloured by
     the lobe's ``colour``. Returns (map, the lobes as added: direction, sharpness,
-    solid_angle, rgb_power, amplitude)."""
+    solid_angle, rgb_power, amplitude, gain)."""
     img = np.asarray(hdr_map, np.float64)
     if img.ndim != 3 or img.shape[-1] != 3 or not np.isfinite(img).all():
         raise ValueError(f"add_lights: need a finite [H, W, 3] map, got {img.shape}")
@@ -297,5 +297,6 @@ def add_lights(hdr_map, lobes, dominant_only: bool = False) -> tuple[np.ndarray,
         rgb = missing * np.asarray(lb["colour"], np.float64)
         amp = rgb / float(sg_integral(lb["sharpness"]))
         added.append({"direction": np.asarray(lb["direction"]), "sharpness": lb["sharpness"],
-                      "solid_angle": lb["solid_angle"], "rgb_power": rgb, "amplitude": amp})
+                      "solid_angle": lb["solid_angle"], "rgb_power": rgb, "amplitude": amp,
+                      "gain": lb.get("gain")})
     return img + render_lobes(added, h, w), added

@@ -4,9 +4,11 @@ Paper, "Lighting Estimation" and Appendix "Details of Lighting Estimation": from
 reconstructed scene, a 360° sweep at the object's placement gives a partial RGB panorama,
 a normal map and an alpha mask (``surfels.panorama.trace_panorama``); a completion model
 (``lighting.backends``) generates LDR panoramas at EV {0, −2.5, −5}, which are fused into an
-HDR environment map (``lighting.hdr.fuse_brackets``) and converted to an octahedral texture
-(``lighting.envmap.equirect_to_oct_np``) for relighting and shadows. We also extract the
-dominant lights (``hdr.extract_lights``).
+HDR environment map (``lighting.hdr.fuse_brackets``); lights clipped at EV 0 (a sun seen
+by the capture) get their missing power back as spherical-Gaussian lobes predicted by the
+light head (``lighting.lights``: the brackets alone stop at 32× the white level); the map is
+converted to an octahedral texture (``lighting.envmap.equirect_to_oct_np``) for relighting and
+shadows. We also extract the dominant lights (``hdr.extract_lights``).
 
 Input of the backend: the trace's EV-0 display values ``ldr`` clipped to [0, 1] for a
 radiance field fitted in sRGB (the usual case), or ``expose(rgb, 0)`` for a linear one,
@@ -41,6 +43,7 @@ from comgs_dr.core import colorspace, runlog
 from comgs_dr.core.equirect import coverage
 from comgs_dr.data.images import to_u8
 from comgs_dr.lighting import envmap, hdr
+from comgs_dr.lighting import lights as light_head
 from comgs_dr.lighting.backends import load_network_backend
 from comgs_dr.lighting.completion import LABELS, CompletionBackend
 from comgs_dr.surfels import load_ply, panorama
@@ -74,6 +77,8 @@ class EstimateConfig:
     supersample: int = 1
     colour_space: str | None = None
     n_lights: int = 3
+    light_head: str = "default"     # weights of the light head; "default": the shipped ones
+                                    # (skipped with a warning if absent); "none": no head
 
     def validate(self) -> None:
         if self.label not in LABELS:
@@ -224,6 +229,15 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     timings["fusion"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    head = _load_head(cfg.light_head)
+    lobes = []
+    if head is not None:
+        pred = light_head.predict_lobes(rgb, mask, head, LABELS[cfg.label])
+        radiance, lobes = light_head.add_lights(radiance, pred)
+        radiance = radiance.astype(np.float32)
+    timings["light_head"] = time.perf_counter() - t
+
+    t = time.perf_counter()
     oct_map = envmap.equirect_to_oct_np(radiance, int(cfg.oct_res)).astype(np.float32)
     timings["octahedral"] = time.perf_counter() - t
     t = time.perf_counter()
@@ -237,9 +251,24 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
             "saturation_limit": hdr.saturation_limit(evs), "config": _jsonable(asdict(cfg)),
             "trace": _jsonable(trace["meta"]), "radiance": "linear",
             "layout": {"hdr": "equirect", "oct": "octahedral"}}
+    meta["light_head"] = None if head is None else str(cfg.light_head)
     return {"hdr": radiance, "oct": oct_map, "ldrs": ldrs,
             "input": {"rgb": rgb, "normal": normal, "mask": mask},
-            "lights": lights, "coverage": cov, "timings": timings, "meta": meta}
+            "lights": lights, "lobes": lobes, "coverage": cov, "timings": timings, "meta": meta}
+
+
+def _load_head(spec: str):
+    """The light head of ``EstimateConfig.light_head`` (None for "none", or for "default"
+    when the shipped weights are absent: warned)."""
+    if spec == "none":
+        return None
+    if spec == "default":
+        if not light_head.DEFAULT_HEAD.is_file():
+            log.warning("estimate_light: no shipped light head (%s); clipped lights keep the "
+                        "brackets' power", light_head.DEFAULT_HEAD)
+            return None
+        return light_head.load_head()
+    return light_head.load_head(spec)
 
 
 def _backend_name(backend) -> str:
@@ -282,6 +311,7 @@ def write_outputs(result: dict, out_path) -> dict:
     envmap.write_exr(paths["oct"], result["oct"], "octahedral")
     doc = {"meta": result["meta"], "timings": result["timings"],
            "lights": _lights_json(result["lights"]),
+           "lobes": _lights_json(result.get("lobes", [])),
            "files": {k: v.name for k, v in paths.items()}}
     paths["json"].write_text(json.dumps(_jsonable(doc), indent=2))
     runlog.rewrite(paths["metrics"].parent,

@@ -47,10 +47,10 @@ class TrainLightHeadConfig:
     maps_dir: Path | None = None
     held_out: tuple = P.HELD_OUT
     heights: tuple = (64, 128, 256, 512)
-    draws_real: int = 40          # per real map and height
-    n_sky: int = 60               # skies (the same ones at every height)
-    draws_sky: int = 4            # per sky and height
-    n_rooms: int = 60             # rooms (64 and 128 px only: path tracing)
+    draws_real: int = 60          # per real map and height
+    n_sky: int = 240              # skies (the same ones at every height)
+    draws_sky: int = 3            # per sky and height
+    n_rooms: int = 100            # rooms (64 and 128 px only: path tracing)
     draws_room: int = 4
     n_masks: int = 120
     aug_ev: float = 1.5
