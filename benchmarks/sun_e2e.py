@@ -106,6 +106,8 @@ def main(argv=None):
     ap.add_argument("--wedge", type=float, default=180.0, help="azimuth range seen, degrees")
     ap.add_argument("--max-elev", type=float, default=60.0)
     ap.add_argument("--light-head", default="default")
+    ap.add_argument("--skies", type=int, default=0, help="also this many Mitsuba sunsky "
+                    "skies (seeds never used in training; sun above 8°)")
     a = ap.parse_args(argv)
     import comgs_dr
     comgs_dr.set_variant("llvm_ad_rgb")
@@ -120,6 +122,13 @@ def main(argv=None):
         hd = shared_data_dir() / "hdri"
         maps = [p for p in sorted(hd.glob("*")) if p.stem in pano_data.HELD_OUT
                 and pano_data.label_of(p.stem) == "outdoor"]
+    cases = [(p.stem, pano_data.load_map(p, 256, 512).astype(np.float64)) for p in maps]
+    rng = np.random.default_rng(12345)
+    while len(cases) < len(maps) + a.skies:
+        sky = pano_data.sunsky_panorama(rng, 256, 512).astype(np.float64)
+        sun = extract_lights(sky, k=1)
+        if sun and sun[0]["direction"][2] > np.sin(np.radians(8)):
+            cases.append((f"sunsky_{len(cases) - len(maps)}", sky))
     methods = {"net": ("net", "none"), "net+lights": ("net", a.light_head),
                "push_pull": ("push_pull", "none"), "push_pull+lights": ("push_pull", a.light_head)}
     be = {"net": backends.load_network_backend(), "push_pull": backends.FillBackend("push_pull")}
@@ -130,9 +139,8 @@ def main(argv=None):
           "ratio error | power est/true | s |")
     print("|---|---|---|---|---|---|---|---|---|")
     rows = []
-    for p in maps:
-        env = pano_data.load_map(p, 256, 512).astype(np.float64)
-        env *= pano_data.auto_exposure(env)
+    for stem, env in cases:
+        env = env * pano_data.auto_exposure(env)
         sun = extract_lights(env, k=1)[0]["direction"]
         scene, truth, _ = build_scene(env, sun, a.dome_res, a.wedge, a.max_elev)
         for name, (kind, head) in methods.items():
@@ -144,9 +152,9 @@ def main(argv=None):
             m = compare_maps(r["hdr"], truth)
             est_r, gt_r = m["light_up_irradiance_ratio_est"], m["light_up_irradiance_ratio_gt"]
             err = est_r / gt_r - 1.0
-            rows.append({"map": p.stem, "method": name, "ratio_err": err,
+            rows.append({"map": stem, "method": name, "ratio_err": err,
                          "angle": m.get("light_angle_deg"), "power": m["power_ratio_est_gt"]})
-            print(f"| {p.stem} | {name} | {100 * r['coverage']:.0f} % | "
+            print(f"| {stem} | {name} | {100 * r['coverage']:.0f} % | "
                   f"{m.get('light_angle_deg', float('nan')):.1f} | {est_r:.2f} | {gt_r:.2f} | "
                   f"{100 * err:+.0f} % | {m['power_ratio_est_gt']:.2f} | {dt:.1f} |")
     print()

@@ -112,13 +112,43 @@ def test_end_to_end_outputs(result, params):
 
 def test_fill_backend_end_to_end_and_deterministic(params, result):
     scene = _scene(params)
-    cfg = EstimateConfig(**SMALL)
+    cfg = EstimateConfig(light_head="none", **SMALL)
     a = estimate_light(scene, POS, cfg, backends.FillBackend("push_pull"))
     b = estimate_light(scene, POS, cfg, backends.FillBackend("push_pull"))
     assert np.array_equal(a["hdr"], b["hdr"])
     # a fill cannot exceed the EV-0 white level; the traced inputs match the net run
     assert a["hdr"].max() <= 1.0 + 1e-5 and a["meta"]["backend"] == "FillBackend(push_pull)"
     assert np.array_equal(a["input"]["rgb"], result["input"]["rgb"])
+
+
+def test_light_head_restores_clipped_power(params, tmp_path):
+    """A head answering log gain 2.127 (softplus(2)): the clipped window's power is multiplied
+    by e^2.127 exactly, the rest of the map is untouched, and env.json lists the lobe."""
+    from comgs_dr.core.colorspace import LUMA
+    from comgs_dr.core.equirect import pixel_solid_angles
+    from comgs_dr.lighting import lights
+    head = lights.LightHead()
+    torch.nn.init.zeros_(head.mlp[-1].weight)
+    torch.nn.init.constant_(head.mlp[-1].bias, 2.0)
+    path = lights.save_head(head, tmp_path / "head.pt")
+    scene = _scene(params)
+    fill = backends.FillBackend("push_pull")
+    off = estimate_light(scene, POS, EstimateConfig(light_head="none", **SMALL), fill)
+    on = estimate_light(scene, POS, EstimateConfig(light_head=str(path), **SMALL), fill)
+    assert len(on["lobes"]) >= 1 and off["lobes"] == []
+    regions = lights.clipped_regions(on["input"]["rgb"], on["input"]["mask"])
+    gain = float(np.exp(np.log1p(np.exp(2.0))))
+    dw = pixel_solid_angles(*off["hdr"].shape[:2])
+    lum_off, lum_on = off["hdr"] @ LUMA, on["hdr"] @ LUMA
+    for r in regions:
+        p_off = float((lum_off * dw * r.pixels).sum())
+        assert float((lum_on * dw * r.pixels).sum()) == pytest.approx(gain * p_off, rel=1e-3)
+    outside = ~np.any([r.pixels for r in regions], 0)
+    np.testing.assert_allclose(on["hdr"][outside], off["hdr"][outside], rtol=1e-6)
+    assert on["lobes"][0]["gain"] == pytest.approx(gain, rel=1e-5)
+    paths = write_outputs(on, tmp_path / "env.exr")
+    doc = json.loads(paths["json"].read_text())
+    assert doc["lobes"] and doc["meta"]["light_head"] == str(path)
 
 
 def test_write_outputs_and_reload(result, tmp_path):

@@ -23,10 +23,14 @@ cannot:
   true powers (``stages.train_light_head``). An MLP on hand-made features, not a CNN: the
   quantity is one number per region, the training set is a few thousand regions, and it must
   generalise from 8 real maps plus procedural skies.
-* ``add_lights``: the fused HDR map plus, per clipped region, a lobe at the region's
-  luminance-weighted centroid with the region's solid angle and the *missing* power
+* ``add_lights``: the fused HDR map plus, per clipped region, the *missing* power
   (predicted power − the fused map's power there), coloured like the unclipped ring around
-  the region (the sun's glow), white where no ring pixel is seen.
+  the region (the sun's glow; white where no ring pixel is seen), drawn inside the region's
+  pixels where the completion put its light (default), or as an SG lobe at the region's
+  centroid with the region's solid angle. Measured on the held-out maps (64×128, 39
+  samples): drawing inside the region gave si-RMSE 0.978 vs 0.995 for the SG and RGB angular
+  error 5.26° vs 5.43° (a large clipped sky patch is not a round lobe). Either way the
+  lobes' parameters are returned (``env.json``).
 """
 from __future__ import annotations
 
@@ -278,25 +282,44 @@ def predict_lobes(ldr, mask, head: LightHead, label: int = 2, sat: float = SAT,
     return out
 
 
-def add_lights(hdr_map, lobes, dominant_only: bool = False) -> tuple[np.ndarray, list[dict]]:
+def add_lights(hdr_map, lobes, shape: str = "region",
+               sharpen: float = 1.0) -> tuple[np.ndarray, list[dict]]:
     """The fused map [H, W, 3] plus each lobe's missing power: P_pred − (the map's luminance
-    power inside the lobe's region), ≥ 0, as an SG of the region's solid angle, coloured by
-    the lobe's ``colour``. Returns (map, the lobes as added: direction, sharpness,
-    solid_angle, rgb_power, amplitude, gain)."""
+    power inside the lobe's region), ≥ 0, coloured by the lobe's ``colour``, drawn as
+
+    * ``shape="sg"``: an SG at the region's centroid with the region's solid angle;
+    * ``shape="region"``: inside the region's pixels, with weights ∝ (the fused map's
+      luminance)^``sharpen`` (where the completion put more light; uniform for a fill).
+
+    Returns (map, the lobes as added: direction, sharpness, solid_angle, rgb_power,
+    amplitude, gain; for "region" the direction and sharpness are those of the drawn power)."""
+    if shape not in ("sg", "region"):
+        raise ValueError(f"add_lights: shape must be 'sg' or 'region', got {shape!r}")
     img = np.asarray(hdr_map, np.float64)
     if img.ndim != 3 or img.shape[-1] != 3 or not np.isfinite(img).all():
         raise ValueError(f"add_lights: need a finite [H, W, 3] map, got {img.shape}")
     h, w = img.shape[:2]
     dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
-    added = []
-    for lb in (lobes[:1] if dominant_only else lobes):
-        have = float(((img @ LUMA) * dw * lb["region"]).sum())
+    lum = img @ LUMA
+    out = img.copy()
+    added, sg_lobes = [], []
+    for lb in lobes:
+        reg = np.asarray(lb["region"], bool)
+        have = float((lum * dw * reg).sum())
         missing = max(lb["luminance_power"] - have, 0.0)
         if missing <= 0:
             continue
         rgb = missing * np.asarray(lb["colour"], np.float64)
-        amp = rgb / float(sg_integral(lb["sharpness"]))
-        added.append({"direction": np.asarray(lb["direction"]), "sharpness": lb["sharpness"],
+        direction, sharp = np.asarray(lb["direction"], np.float64), float(lb["sharpness"])
+        if shape == "region":
+            wgt = np.where(reg, np.maximum(lum, 1e-12) ** float(sharpen), 0.0)
+            wgt = wgt / float((wgt * dw).sum())                               # Σ w dω = 1
+            out += wgt[..., None] * rgb
+            direction = _unit((equirect_directions(h, w) * (wgt * dw)[..., None]).sum((0, 1)))
+        else:
+            sg_lobes.append({"direction": direction, "sharpness": sharp, "rgb_power": rgb})
+        amp = rgb / float(sg_integral(sharp))
+        added.append({"direction": direction, "sharpness": sharp,
                       "solid_angle": lb["solid_angle"], "rgb_power": rgb, "amplitude": amp,
                       "gain": lb.get("gain")})
-    return img + render_lobes(added, h, w), added
+    return out + render_lobes(sg_lobes, h, w), added
