@@ -182,7 +182,9 @@ def test_train_light_head_tiny_run(tmp_path):
     info = train(cfg, progress=False, command="test")
     assert info["maps"] == ["yard"] and info["regions"] > 0
     head = L.load_head(cfg.out)
-    assert np.isfinite(info["history"][-1]["val_huber"])
+    assert np.isfinite(info["history"][-1]["train_huber"])
+    assert [r["left_out"] for r in info["cross_validation"]][:1] == ["yard"]
+    assert all(np.isfinite(r["mae_log"]) for r in info["cross_validation"])
     img, _ = _sun_map()
     lobes = L.predict_lobes(expose(img * 0.05, 0.0), np.ones((64, 128)), head, 0)
     assert lobes and all(np.isfinite(lb["gain"]) and lb["gain"] >= 1 for lb in lobes)

@@ -7,10 +7,17 @@ path-traced procedural rooms (``pano_data``), seen through traced surfel masks
 re-exposes (auto exposure × 2^U(−aug_ev, aug_ev)) and white-balances a map, exposes it to an
 EV-0 LDR panorama, finds its clipped regions and records each region's features and target
 log(P_true / P_seen) (luminance power of the true map over the region vs. that of the LDR
-pixels). 15 % of the maps (by identity, not by draw) are kept for validation.
+pixels).
 
-Loss: Huber (δ = 0.5) on the log gain; AdamW, full-batch-ish minibatches of 512, cosine
-learning rate. Minutes on 2 cores; the shipped head is ``lighting/weights/light_head.pt``.
+Validation is by map identity, never by draw: ``--cv`` (default on) first refits the head
+with each real map left out in turn (and with a quarter of the skies, a quarter of the rooms
+left out) and records the mean absolute error of the log gain on what was left out, beside a
+constant guess (the training median); the shipped head is then fitted on everything.
+
+Loss: Huber (δ = 0.5) on the log gain; AdamW (weight decay ``weight_decay``), minibatches of
+512, cosine learning rate. Settings chosen by that cross-validation (hidden 64, weight decay
+1e-2, 1000 steps: real-map MAE 0.71 against 0.78 for 1e-4/3000 steps and 0.77 for 128
+hidden units). Minutes on 2 cores; the shipped head is ``lighting/weights/light_head.pt``.
 """
 from __future__ import annotations
 
@@ -56,9 +63,11 @@ class TrainLightHeadConfig:
     aug_ev: float = 1.5
     wb_jitter: float = 0.1
     full_view: float = 0.15       # fraction of draws with the whole sphere observed
-    steps: int = 3000
+    steps: int = 1000
     lr: float = 3e-3
     hidden: int = 64
+    weight_decay: float = 1e-2
+    cv: bool = True
     seed: int = 0
     threads: int = 2
 
@@ -96,7 +105,7 @@ def build_data(cfg: TrainLightHeadConfig, progress: bool = True) -> dict:
     """Features [N, F], targets [N] (log gain), groups [N] (map identity) and names."""
     cache = Path(cfg.data_dir) / "light_head_data.npz"
     key = json.dumps({k: str(v) for k, v in asdict(cfg).items()
-                      if k not in ("out", "steps", "lr", "hidden", "threads")}, sort_keys=True)
+                      if k not in ("out", "steps", "lr", "hidden", "threads", "weight_decay", "cv")}, sort_keys=True)
     if cache.is_file():
         d = dict(np.load(cache, allow_pickle=False))
         if str(d.get("key")) == key:
@@ -141,46 +150,72 @@ def _huber(pred, tgt, delta: float = 0.5):
     return torch.nn.functional.huber_loss(pred, tgt, delta=delta)
 
 
-def train(cfg: TrainLightHeadConfig, progress: bool = True, command: str = "") -> dict:
+def fit_head(x: torch.Tensor, y: torch.Tensor, cfg: TrainLightHeadConfig,
+             hist: list | None = None) -> L.LightHead:
+    """A LightHead fitted to features x [N, F] and log gains y [N] (standardised inputs)."""
     torch.manual_seed(cfg.seed)
+    head = L.LightHead(x.shape[1], cfg.hidden)
+    head.mean.copy_(x.mean(0))
+    head.std.copy_(x.std(0).clamp_min(1e-3))
+    opt = torch.optim.AdamW(head.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    rng = np.random.default_rng(cfg.seed + 1)
+    t0 = time.perf_counter()
+    for step in range(cfg.steps):
+        for gr in opt.param_groups:
+            gr["lr"] = cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / cfg.steps)))
+        idx = torch.from_numpy(rng.integers(len(x), size=min(512, len(x))))
+        loss = _huber(head(x[idx]), y[idx])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if hist is not None and ((step + 1) % 250 == 0 or step == 0):
+            with torch.no_grad():
+                hist.append({"step": step + 1, "time_s": round(time.perf_counter() - t0, 2),
+                             "train_huber": round(float(_huber(head(x), y)), 4),
+                             "train_mae_log": round(float((head(x) - y).abs().mean()), 4)})
+    return head.eval()
+
+
+def cross_validate(x, y, groups, names, cfg: TrainLightHeadConfig) -> list[dict]:
+    """Leave-one-real-map-out, and quarter-of-skies / quarter-of-rooms-out folds: the mean
+    absolute error of the log gain on the left-out regions, and a constant guess's."""
+    folds = [(str(n), groups == i) for i, n in enumerate(names)]
+    for base, kind in ((1000, "skies"), (2000, "rooms")):
+        sel = (groups >= base) & (groups < base + 1000)
+        if sel.any():
+            folds.append((f"{kind} (1/4)", sel & ((groups - base) % 4 == 0)))
+    out = []
+    for name, te in folds:
+        te = torch.from_numpy(te)
+        if not te.any() or te.all():
+            continue
+        head = fit_head(x[~te], y[~te], cfg)
+        with torch.no_grad():
+            err = (head(x[te]) - y[te])
+        out.append({"left_out": name, "regions": int(te.sum()),
+                    "mae_log": round(float(err.abs().mean()), 3),
+                    "bias_log": round(float(err.mean()), 3),
+                    "mae_log_const": round(float((y[te] - y[~te].median()).abs().mean()), 3)})
+    return out
+
+
+def train(cfg: TrainLightHeadConfig, progress: bool = True, command: str = "") -> dict:
     torch.set_num_threads(cfg.threads)
     data = build_data(cfg, progress)
     x = torch.from_numpy(data["features"])
     y = torch.from_numpy(data["targets"])
-    g = data["groups"]
-    ids = np.unique(g)
-    val_ids = np.random.default_rng(cfg.seed).choice(ids, max(1, int(0.15 * len(ids))),
-                                                     replace=False)
-    val = torch.from_numpy(np.isin(g, val_ids))
-    head = L.LightHead(x.shape[1], cfg.hidden)
-    head.mean.copy_(x[~val].mean(0))
-    head.std.copy_(x[~val].std(0).clamp_min(1e-3))
-    opt = torch.optim.AdamW(head.parameters(), lr=cfg.lr, weight_decay=1e-4)
-    xt, yt = x[~val], y[~val]
-    rng = np.random.default_rng(cfg.seed + 1)
-    hist, t0 = [], time.perf_counter()
-    for step in tqdm(range(cfg.steps), desc="light head", disable=not progress):
-        for gr in opt.param_groups:
-            gr["lr"] = cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / cfg.steps)))
-        idx = torch.from_numpy(rng.integers(len(xt), size=min(512, len(xt))))
-        loss = _huber(head(xt[idx]), yt[idx])
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        if (step + 1) % 250 == 0 or step == 0:
-            with torch.no_grad():
-                ev = {"step": step + 1, "time_s": round(time.perf_counter() - t0, 2),
-                      "train_huber": round(float(_huber(head(xt), yt)), 4),
-                      "val_huber": round(float(_huber(head(x[val]), y[val])), 4),
-                      "val_mae_log": round(float((head(x[val]) - y[val]).abs().mean()), 4),
-                      "val_mae_log_const": round(float((y[val] - yt.median()).abs().mean()), 4)}
-            hist.append(ev)
-    info = {"command": command, "regions": int(len(y)), "val_regions": int(val.sum()),
-            "data_seconds": float(data["seconds"]), "train_seconds": round(time.perf_counter() - t0, 1),
+    t0 = time.perf_counter()
+    cv = cross_validate(x, y, data["groups"], data["names"], cfg) if cfg.cv else []
+    hist = []
+    head = fit_head(x, y, cfg, hist)
+    info = {"command": command, "regions": int(len(y)),
+            "data_seconds": float(data["seconds"]),
+            "train_seconds": round(time.perf_counter() - t0, 1),
             "maps": [str(n) for n in data["names"]], "held_out": list(cfg.held_out),
+            "cross_validation": cv,
             "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()},
             "history": hist}
-    L.save_head(head.eval(), cfg.out, info)
+    L.save_head(head, cfg.out, info)
     Path(cfg.out).with_suffix(".json").write_text(json.dumps(info, indent=1))
     return info
 
@@ -197,6 +232,8 @@ def add_arguments(ap) -> None:
     ap.add_argument("--rooms", type=int, default=d.n_rooms)
     ap.add_argument("--masks", type=int, default=d.n_masks)
     ap.add_argument("--steps", type=int, default=d.steps)
+    ap.add_argument("--weight-decay", type=float, default=d.weight_decay)
+    ap.add_argument("--no-cv", action="store_true", help="skip the cross-validation")
     ap.add_argument("--seed", type=int, default=d.seed)
     ap.add_argument("--threads", type=int, default=d.threads)
     ap.add_argument("--quiet", action="store_true")
@@ -209,11 +246,16 @@ def run_from_args(args) -> int:
                                held_out=tuple(args.held_out), heights=tuple(args.heights),
                                draws_real=args.draws, n_sky=args.skies, n_rooms=args.rooms,
                                n_masks=args.masks, steps=args.steps, seed=args.seed,
+                               weight_decay=args.weight_decay, cv=not args.no_cv,
                                threads=args.threads)
     info = train(cfg, progress=not args.quiet, command=" ".join(sys.argv))
-    last = info["history"][-1]
-    print(f"saved {cfg.out}: {info['regions']} regions, validation MAE of log gain "
-          f"{last['val_mae_log']} (constant guess {last['val_mae_log_const']})")
+    print(f"saved {cfg.out}: {info['regions']} regions, training MAE of log gain "
+          f"{info['history'][-1]['train_mae_log']}")
+    if info["cross_validation"]:
+        print("| left out | regions | MAE log gain | bias | constant guess |\n|---|---|---|---|---|")
+        for r in info["cross_validation"]:
+            print(f"| {r['left_out']} | {r['regions']} | {r['mae_log']} | {r['bias_log']} | "
+                  f"{r['mae_log_const']} |")
     return 0
 
 
