@@ -66,7 +66,8 @@ def params():
 @pytest.fixture(scope="module")
 def result(params, tiny_weights):
     backend = backends.load_network_backend(tiny_weights)
-    return estimate_light(_scene(params), POS, EstimateConfig(label="indoor", **SMALL), backend)
+    return estimate_light(_scene(params), POS, EstimateConfig(label="indoor", light_head="none",
+                                                              **SMALL), backend)
 
 
 def test_end_to_end_outputs(result, params):
@@ -149,6 +150,9 @@ def test_light_head_restores_clipped_power(params, tmp_path):
     paths = write_outputs(on, tmp_path / "env.exr")
     doc = json.loads(paths["json"].read_text())
     assert doc["lobes"] and doc["meta"]["light_head"] == str(path)
+    shipped = estimate_light(scene, POS, EstimateConfig(**SMALL), fill)   # the default head
+    assert shipped["meta"]["light_head"] == "default" and np.isfinite(shipped["hdr"]).all()
+    assert shipped["hdr"].max() > off["hdr"].max()           # the white window got brighter
 
 
 def test_write_outputs_and_reload(result, tmp_path):
