@@ -15,6 +15,7 @@ traced from procedural surfel scenes), with a random rotation about Z:
   (``--labels JSON``: {file stem: "indoor" | "outdoor"}, default "unknown");
 * each method's ``complete(...)`` at EV (0, −2.5, −5), fused with ``hdr.fuse_brackets``.
 
+    python benchmarks/lighting_eval.py --maps ../shared/data/hdri --held-out   # 5 unseen maps
     python benchmarks/lighting_eval.py --maps ../shared/data/hdri --weights W.pt --masks 16
     python benchmarks/lighting_eval.py --maps DIR --quick        # 2 masks per map, res 32
 
@@ -76,6 +77,8 @@ def parse_args(argv=None):
     ap.add_argument("--res", type=int, default=128, help="eval height (width = 2·res)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--labels", default=None, help="JSON {file stem: indoor|outdoor}")
+    ap.add_argument("--held-out", action="store_true", help="only the maps of --maps named in "
+                    "pano_data.HELD_OUT (never trained on), labelled by pano_data.label_of")
     ap.add_argument("--out", default="out/lighting_eval", help="folder for the PNG figure")
     ap.add_argument("--json", default=None, help="dump per-sample records and tables here")
     ap.add_argument("--sphere-size", type=int, default=64)
@@ -195,6 +198,11 @@ def evaluate(args, progress=print) -> dict:
     labels = json.loads(Path(args.labels).read_text()) if args.labels else {}
     from comgs_dr.lighting import lights as L
     maps = list_maps(args.maps)
+    if args.held_out:
+        maps = [p for p in maps if p.stem in pano.HELD_OUT]
+        if not maps:
+            raise FileNotFoundError(f"--held-out: none of {pano.HELD_OUT} in {args.maps}")
+        labels = {p.stem: pano.label_of(p.stem) for p in maps} | labels
     methods, head = make_methods(args.weights, args.light_head, args.diffusers)
     h, w = args.res, 2 * args.res
     rng = np.random.default_rng(args.seed)

@@ -98,3 +98,20 @@ def test_lighting_eval_smoke(tmp_path, pano_data, variant, capsys):
     dump = json.loads((tmp_path / "r.json").read_text())
     assert dump["summary"]["net_wins"] == k and len(dump["records"]) == 18
     assert any(l.startswith("| coverage | light | method |") for l in lines)
+
+
+def test_held_out_selects_the_never_trained_maps(tmp_path, pano_data, variant, capsys):
+    from comgs_dr.lighting.envmap import write_exr
+    from comgs_dr.lighting.pano_data import HELD_OUT
+    maps = tmp_path / "maps"
+    d = equirect_directions(16, 32)
+    sky = 0.2 + 0.8 * np.clip(d[..., 2:], 0, 1) * np.array([0.6, 0.8, 1.0])
+    write_exr(maps / f"{HELD_OUT[0]}.exr", sky, "equirect")
+    write_exr(maps / "trained_on.exr", sky, "equirect")
+    out = _bench().main(["--maps", str(maps), "--held-out", "--quick", "--light-head", "none",
+                         "--out", str(tmp_path / "fig"), "--examples", "0"])
+    assert {r["map"] for r in out["records"]} == {HELD_OUT[0]}
+    assert {r["label"] for r in out["records"]} == {"outdoor"}
+    (maps / f"{HELD_OUT[0]}.exr").unlink()
+    with pytest.raises(FileNotFoundError, match="--held-out"):
+        _bench().main(["--maps", str(maps), "--held-out", "--quick"])
