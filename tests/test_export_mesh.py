@@ -11,16 +11,14 @@ from comgs_dr.data.types import Camera
 
 
 def _sphere_error(mesh, centre, radius, n=20000):
-    """Mean |distance to the sphere| of points sampled on the mesh, relative to the radius
-    (one side of the Chamfer distance; the other: the sphere's points to the mesh)."""
-    from scipy.spatial import cKDTree
-    pts = mesh.sample(n)
-    a = np.abs(np.linalg.norm(pts - centre, axis=1) - radius).mean()
-    rng = np.random.default_rng(0)
-    s = rng.normal(size=(4000, 3))
-    s = centre + radius * s / np.linalg.norm(s, axis=1, keepdims=True)
-    b = cKDTree(mesh.sample(5 * n)).query(s)[0].mean()     # ≥ the distance to the surface
-    return (a + b) / 2 / radius
+    """Symmetric Chamfer distance to the sphere over the radius (benchmarks/mesh_sphere.py)."""
+    import importlib.util
+    from pathlib import Path
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "mesh_sphere.py"
+    spec = importlib.util.spec_from_file_location("mesh_sphere", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.sphere_error(mesh, centre, radius, n)
 
 
 def _main_part(mesh) -> float:
