@@ -156,3 +156,21 @@ def test_cli_export_mesh_and_errors(sphere_run, tmp_path, capsys):
     assert cli.main(["export-mesh", str(run), "--out", str(out), "--resolution", "2",
                      "--quiet"]) == 2
     assert "resolution" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+@pytest.mark.skipif("'slow' not in (config.getoption('markexpr') or '')",
+                    reason="~15 min: run with -m slow")
+def test_trained_sphere_run_exports_within_one_percent(tmp_path, capsys):
+    """The long case (~15 min on 2 cores): a step-1 run trained on 48 views at 128 px, then
+    TSDF export (benchmarks/mesh_sphere.py; measured 0.48 % of the radius)."""
+    import importlib.util
+    from pathlib import Path
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "mesh_sphere.py"
+    spec = importlib.util.spec_from_file_location("mesh_sphere", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    mod.main(["--out", str(tmp_path)])
+    rows = [l.split("|") for l in capsys.readouterr().out.splitlines() if l.startswith("| tsdf")]
+    assert rows and rows[0][2].strip() == "True"
+    assert float(rows[0][3].strip().rstrip("%")) < 1.0
