@@ -1,0 +1,68 @@
+"""The ``comgs`` command line.
+
+Each subcommand has a parser builder ``_add_<name>(subparsers)`` in one of the modules of
+this package (``datasets``, ``objects``, ``lighting``, ``composition``; listed in
+``_SUBCOMMANDS``) that sets ``func=_cmd_<name>``; ``_cmd_<name>(args)`` returns an exit
+code.
+
+    comgs make-dataset object --mesh M --envmap E --out DIR [--views N] [--test-views N]
+                              [--res R] [--spp S] [--relight MAP ...] [--seed S] [--variant V]
+                              [--sfm-points N]
+    comgs make-dataset scene --out DIR [--views 60] [--res 96] [--points 20000]
+    comgs estimate-light SCENE.ply --at X Y Z --out ENV.exr [--label L] [--width W]
+                              [--height H] [--exclude-radius R] [--backend B] [--weights PATH]
+                              [--diffusers-dir DIR]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from comgs_dr.cli.composition import _add_compose, _add_render_comp
+from comgs_dr.cli.datasets import _add_demo, _add_make_dataset, _add_report
+from comgs_dr.cli.lighting import _add_estimate_light, _add_train_completion, _add_train_light_head
+from comgs_dr.cli.objects import (
+    _add_decompose,
+    _add_export_mesh,
+    _add_reconstruct,
+    _add_relight,
+    _add_render,
+)
+from comgs_dr.core.config import numeric_problem
+from comgs_dr.train.interrupt import TrainingInterrupted
+
+_SUBCOMMANDS = (_add_make_dataset, _add_demo, _add_report, _add_reconstruct, _add_render,
+                _add_export_mesh, _add_decompose, _add_relight, _add_estimate_light,
+                _add_train_completion, _add_train_light_head, _add_compose, _add_render_comp)
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="comgs", description="ComGS object-scene composition on Dr.Jit / Mitsuba 3")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for add in _SUBCOMMANDS:
+        add(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``comgs``; returns the exit code (2 for usage and input errors)."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help (0) or a usage error (2)
+        return int(e.code or 0)
+    problem = numeric_problem(parser, args)       # nan/inf/1e309, integers beyond 32 bits
+    if problem:
+        print(f"comgs {args.command}: error: {problem}", file=sys.stderr)
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except TrainingInterrupted as e:     # SIGINT/SIGTERM: the checkpoint is written
+        print(f"comgs {args.command}: stopped by {e}", file=sys.stderr)
+        return e.exit_code
+    except (FileNotFoundError, ValueError, ImportError) as e:
+        print(f"comgs {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:                 # full disk, unwritable folder
+        print(f"comgs {args.command}: error: {e}", file=sys.stderr)
+        return 1

@@ -1,0 +1,216 @@
+"""The command line: ``comgs make-dataset``, ``comgs demo``, ``comgs report``."""
+from __future__ import annotations
+
+import dataclasses
+
+from comgs_dr import set_variant
+from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
+from comgs_dr.data.procedural import scene_dataset_config
+from comgs_dr.demo import PRESETS as DEMO_PRESETS
+from comgs_dr.demo import run_demo
+
+# ----------------------------------------------------------------------------- make-dataset
+
+def _add_make_dataset(sub) -> None:
+    p = sub.add_parser("make-dataset", help="render synthetic ground-truth datasets",
+                       description="Render synthetic ground truth with Mitsuba's path tracer.")
+    kinds = p.add_subparsers(dest="kind", metavar="KIND", required=True)
+    o = kinds.add_parser(
+        "object", help="one object under an HDR env map (NeRF-synthetic folder)",
+        description="Object dataset in the SynCom-Object protocol: random upper-hemisphere "
+                    "training views, test views on three latitude circles, G-buffer ground "
+                    "truth and relit test views. Omitted values use the defaults of "
+                    "comgs_dr.data.synthetic.ObjectDatasetConfig.")
+    o.add_argument("--mesh", metavar="M",
+                   help="OBJ/PLY mesh (default: the shared Spot mesh, if present), or "
+                        "'detail': the built-in stress object (a photo-textured sphere in a "
+                        "cage of sub-pixel to 3 px rods, rings and a slotted sheet)")
+    o.add_argument("--envmap", metavar="E",
+                   help="HDR/EXR lighting (default: a shared training map)")
+    o.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    o.add_argument("--views", type=int, dest="n_train", metavar="N",
+                   help="training views (default 100)")
+    o.add_argument("--test-views", type=int, dest="n_test", metavar="N",
+                   help="test views (default 24)")
+    o.add_argument("--res", type=int, dest="resolution", metavar="R",
+                   help="image side in pixels (default 128)")
+    o.add_argument("--spp", type=int, metavar="S", help="samples per pixel of training views "
+                   "(default 64; test views use twice as many)")
+    o.add_argument("--relight", nargs="*", metavar="MAP",
+                   help="env maps for relit test views (default: the held-out shared maps; "
+                        "give the flag alone for none)")
+    o.add_argument("--seed", type=int, metavar="S", help="camera/noise seed (default 0)")
+    o.add_argument("--no-texture", action="store_true", help="ignore the mesh texture")
+    o.add_argument("--up", choices=("y", "z"), dest="up_axis", help="up axis of the mesh file "
+                   "(default y)")
+    o.add_argument("--rings", type=float, nargs="+", dest="train_rings_deg", metavar="ELEV",
+                   help="training views evenly on these elevation rings (degrees; default: "
+                        "random in the upper hemisphere)")
+    o.add_argument("--fov", type=float, dest="fov_deg", metavar="DEG",
+                   help="field of view in degrees (default 40)")
+    o.add_argument("--radius", type=float, metavar="R",
+                   help="camera distance from the object's centre (default: fit the view)")
+    o.add_argument("--half-extent", type=float, dest="half_extent", metavar="H",
+                   help="largest half side of the object's bounding box (default 1)")
+    o.add_argument("--base-color", type=float, nargs=3, dest="base_color", metavar="C",
+                   help="linear base colour without texture (default 0.6 0.6 0.6)")
+    o.add_argument("--roughness", type=float, metavar="R", help="principled roughness (default 0.5)")
+    o.add_argument("--sfm-points", type=int, dest="sfm_points", metavar="N",
+                   help="also write points3d.ply: N SfM-like surface points (default 0: none)")
+    o.add_argument("--variant", default="auto", help="Mitsuba variant (default auto)")
+    o.add_argument("--quiet", action="store_true", help="no progress bars")
+    sc = kinds.add_parser(
+        "scene", help="the procedural table-top scene with SfM-like points (scene preset test)",
+        description="A ground slab with four objects under a procedural sky, training views from "
+                    "15-75 deg elevation and points3d.ply (surface points seen by >= 2 training "
+                    "views, coloured, jittered: what COLMAP gives a capture). Reconstruct it "
+                    "with `comgs reconstruct DIR --scene`.")
+    sc.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    sc.add_argument("--views", type=int, default=60, dest="n_train", metavar="N")
+    sc.add_argument("--test-views", type=int, default=12, dest="n_test", metavar="N")
+    sc.add_argument("--res", type=int, default=96, dest="resolution", metavar="R")
+    sc.add_argument("--points", type=int, default=20000, metavar="N", help="0: no points3d.ply")
+    sc.add_argument("--seed", type=int, default=0, metavar="S")
+    sc.add_argument("--variant", default="auto", help="Mitsuba variant (default auto)")
+    sc.add_argument("--quiet", action="store_true", help="no progress bars")
+    c = kinds.add_parser(
+        "composition", help="a scene, objects and path-traced composites of them (ground truth)",
+        description="scene/ (NeRF-synthetic capture of a textured ground with a wall and a box, "
+                    "no objects), objects/<name>/ (each object alone, as `make-dataset object`), "
+                    "transform.json (placements on the ground) and comp/ (spiral test views: "
+                    "gt/ with the objects really in the scene, empty/ without, mask/). Omitted "
+                    "values use the defaults of comgs_dr.data.composition_dataset."
+                    "CompositionDatasetConfig.")
+    c.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    c.add_argument("--objects", metavar="LIST",
+                   help="comma-separated shared object names (spot, teapot, suzanne) or .obj/.ply "
+                        "paths (default spot,teapot)")
+    c.add_argument("--scene-map", dest="scene_map", metavar="M",
+                   help="HDR map of the scene and composites (shared name or path; default "
+                        "blender_sunrise.exr)")
+    c.add_argument("--object-map", dest="object_map", metavar="M",
+                   help="HDR map of the object captures (default blender_studio.exr)")
+    c.add_argument("--res", type=int, dest="resolution", metavar="R",
+                   help="image side in pixels (default 96)")
+    c.add_argument("--scene-views", type=int, dest="scene_views", metavar="N",
+                   help="scene training views (default 64)")
+    c.add_argument("--object-views", type=int, dest="object_views", metavar="N",
+                   help="training views per object (default 48)")
+    c.add_argument("--test-views", type=int, dest="test_views", metavar="N",
+                   help="test views of the scene, of each object and composites (default 8)")
+    c.add_argument("--spp", type=int, metavar="S", help="samples per pixel of training views "
+                   "(default 128; test views and composites use twice as many)")
+    c.add_argument("--points", type=int, dest="sfm_points", metavar="N",
+                   help="SfM-like points in scene/points3d.ply (default 10000; 0: none)")
+    c.add_argument("--seed", type=int, metavar="S", help="camera/placement/noise seed (default 0)")
+    c.add_argument("--variant", default="auto", help="Mitsuba variant (default auto)")
+    c.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_make_dataset)
+
+
+def _cmd_make_dataset(args) -> int:
+    if args.kind == "object":
+        return _make_object(args)
+    if args.kind == "scene":
+        return _make_scene(args)
+    if args.kind == "composition":
+        return _make_composition(args)
+    raise AssertionError(f"unhandled dataset kind {args.kind}")  # argparse restricts KIND
+
+
+def _make_object(args) -> int:
+    overrides = {k: getattr(args, k) for k in
+                 ("mesh", "envmap", "n_train", "n_test", "resolution", "spp", "seed", "up_axis",
+                  "sfm_points", "fov_deg", "radius", "half_extent", "roughness")
+                 if getattr(args, k) is not None}
+    if args.relight is not None:
+        overrides["relight_envmaps"] = tuple(args.relight)
+    if args.no_texture:
+        overrides["texture"] = None
+    if args.train_rings_deg:
+        overrides["train_rings_deg"] = tuple(args.train_rings_deg)
+    if args.base_color is not None:
+        overrides["base_color"] = tuple(args.base_color)
+    cfg = ObjectDatasetConfig(out_dir=args.out, variant=set_variant(args.variant), **overrides)
+    s = make_object_dataset(cfg, progress=not args.quiet)
+    relit = ", ".join(s["relight"]) or "none"
+    print(f"wrote {s['n_train']} train + {s['n_test']} test views ({s['resolution']}px, "
+          f"relit: {relit}) to {s['out_dir']} in {s['seconds']:.1f} s [{s['variant']}]")
+    return 0
+
+
+def _make_scene(args) -> int:
+    if args.points < 0:
+        raise SystemExit("comgs make-dataset scene: --points must be >= 0")
+    cfg = scene_dataset_config(args.out, args.n_train, args.n_test, args.resolution, args.points,
+                               args.seed)
+    s = make_object_dataset(dataclasses.replace(cfg, variant=set_variant(args.variant)),
+                            progress=not args.quiet)
+    print(f"wrote {s['n_train']} train + {s['n_test']} test views ({s['resolution']}px) and "
+          f"{args.points} points to {s['out_dir']} in {s['seconds']:.1f} s [{s['variant']}]")
+    return 0
+
+
+def _make_composition(args) -> int:
+    from comgs_dr.data.composition_dataset import CompositionDatasetConfig, make_composition_dataset
+    overrides = {k: getattr(args, k) for k in
+                 ("objects", "scene_map", "object_map", "resolution", "scene_views", "object_views",
+                  "test_views", "spp", "sfm_points", "seed") if getattr(args, k) is not None}
+    cfg = CompositionDatasetConfig(out_dir=args.out, variant=set_variant(args.variant), **overrides)
+    s = make_composition_dataset(cfg, progress=not args.quiet)
+    sec = s["seconds"]
+    print(f"wrote scene ({s['n_scene_train']} train views), objects {', '.join(s['objects'])} "
+          f"({s['n_object_train']} train views each) and {s['n_test']} composite test views "
+          f"({s['resolution']}px) to {s['out_dir']} in {sec['total']:.1f} s (scene "
+          f"{sec['scene']:.1f} s, objects {sum(sec['objects'].values()):.1f} s, composites "
+          f"{sec['comp']:.1f} s) [{s['variant']}]")
+    return 0
+
+
+# ----------------------------------------------------------------------------- demo
+
+def _add_demo(sub) -> None:
+    p = sub.add_parser("demo", help="the whole pipeline on embedded procedural inputs (no download)",
+                       description="Procedural object, scene and maps -> path-traced ground truth -> "
+                                   "object step 1 + step 2, scene step 1 -> lighting estimated at "
+                                   "the placement -> occlusion cached in SOPs -> composition with "
+                                   "SOP shadows, traced shadows and a naive paste, scored against "
+                                   "the ground truth -> OUT/report.html (see comgs_dr.demo).")
+    p.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
+    p.add_argument("--preset", choices=sorted(DEMO_PRESETS), default="default",
+                   help="default: a few minutes on 2 cores; tiny: a smoke test (~1 min)")
+    p.add_argument("--res", type=int, help="image side (default: the preset's)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_demo)
+
+
+def _cmd_demo(args) -> int:
+    cfg = dataclasses.replace(DEMO_PRESETS[args.preset], out_dir=args.out, progress=not args.quiet)
+    if args.res is not None:
+        cfg = dataclasses.replace(cfg, resolution=args.res)
+    s = run_demo(cfg)
+    print(f"[{s['variant']}] composition of {s['frames']} test frames against path-traced ground "
+          f"truth ({cfg.resolution}px):")
+    print(f"{'variant':<10}{'PSNR':>8}{'SSIM':>8}{'s/frame':>10}")
+    for v, m in s["composition"].items():
+        print(f"{v:<10}{m['psnr']:>8.2f}{m['ssim']:>8.4f}{m['frame_seconds']:>10.3f}")
+    print(f"SOP better than paste on {s['sop_beats_paste_frames']}/{s['frames']} frames; total "
+          f"{s['total_seconds']:.0f} s; report: {s['report']}")
+    return 0
+
+
+def _add_report(sub) -> None:
+    p = sub.add_parser("report", help="one self-contained HTML report of a run folder",
+                       description="Plot every metrics.jsonl below RUN_DIR (error against wall "
+                                   "time, per stage), tabulate the stage summaries and inline "
+                                   "the pictures into one HTML file (default RUN_DIR/report.html).")
+    p.add_argument("run", metavar="RUN_DIR")
+    p.add_argument("--out", metavar="FILE.html")
+    p.add_argument("--title")
+    p.set_defaults(func=_cmd_report)
+
+
+def _cmd_report(args) -> int:
+    from comgs_dr.eval.report import write_report
+    print(f"wrote {write_report(args.run, args.out, args.title)}")
+    return 0

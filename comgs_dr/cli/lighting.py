@@ -1,0 +1,104 @@
+"""The command line: ``comgs estimate-light``, ``train-completion``, ``train-light-head``."""
+from __future__ import annotations
+
+from comgs_dr import set_variant
+from comgs_dr.core.config import add_config_arguments, config_overrides
+from comgs_dr.lighting import backends
+from comgs_dr.stages import train_completion, train_light_head
+from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light, write_outputs
+
+# ----------------------------------------------------------------------------- estimate-light
+
+def _add_estimate_light(sub) -> None:
+    d = EstimateConfig()
+    p = sub.add_parser("estimate-light", help="HDR environment map at a placement in a surfel scene",
+                       description="Trace a 360-degree panorama of the surfel scene at the "
+                                   "position, complete it at EV 0/-2.5/-5, fuse to HDR and write "
+                                   "ENV.exr (equirect), ENV_oct.exr (octahedral), ENV.json "
+                                   "(timings, lights, metadata) and ENV_preview.png.")
+    p.add_argument("scene", metavar="SCENE.ply", help="surfel PLY (3DGS/2DGS/ComGS layouts)")
+    p.add_argument("--at", nargs=3, type=float, required=True, metavar=("X", "Y", "Z"),
+                   help="object placement (world coordinates, Z-up)")
+    p.add_argument("--out", required=True, metavar="ENV.exr", help="output equirect EXR")
+    p.add_argument("--label", choices=("unknown", "indoor", "outdoor"), default=d.label)
+    p.add_argument("--width", type=int, default=d.width, help=f"trace width (default {d.width})")
+    p.add_argument("--height", type=int, default=d.height,
+                   help=f"trace height (default {d.height})")
+    p.add_argument("--exclude-radius", type=float, default=d.exclude_radius,
+                   help="leave out surfels this close to the position (the object itself)")
+    p.add_argument("--max-hits", type=int, default=d.max_hits)
+    p.add_argument("--supersample", type=int, default=d.supersample)
+    p.add_argument("--oct-res", type=int, default=d.oct_res,
+                   help=f"octahedral map side (default {d.oct_res})")
+    p.add_argument("--backend", choices=("net", "mean", "push_pull", "sh", "diffusers"),
+                   default="net", help="completion backend (default net: the shipped weights)")
+    p.add_argument("--weights", metavar="PATH", help="completion-net checkpoint (backend net)")
+    p.add_argument("--net-resolution", type=int, nargs=2, metavar=("H", "W"),
+                   help="network input size (default: the size the weights were trained at)")
+    p.add_argument("--diffusers-dir", metavar="DIR",
+                   help="local diffusers inpainting model (backend diffusers); prompt "
+                        "embeddings come from its text encoder or DIR/ev_embeddings.pt "
+                        "({'xi_b': [L, D], 'xi_d': [L, D]})")
+    p.add_argument("--steps", type=int, default=30, help="diffusion steps (backend diffusers)")
+    p.add_argument("--variant", default="auto")
+    add_config_arguments(p, EstimateConfig)
+    p.set_defaults(func=_cmd_estimate_light)
+
+
+def _estimate_backend(args):
+    if args.backend == "net":
+        res = tuple(args.net_resolution) if args.net_resolution else None
+        return backends.load_network_backend(args.weights, res)
+    if args.backend == "diffusers":
+        if not args.diffusers_dir:
+            raise ValueError("--backend diffusers needs --diffusers-dir DIR")
+        return backends.DiffusersBackend.from_dir(args.diffusers_dir, steps=args.steps)
+    return backends.FillBackend(args.backend)
+
+
+def _cmd_estimate_light(args) -> int:
+    set_variant(args.variant)
+    kw = config_overrides(args, EstimateConfig)
+    if "net_resolution" in kw:
+        kw["net_resolution"] = tuple(kw["net_resolution"])
+    cfg = EstimateConfig(**kw)
+    r = estimate_light(args.scene, args.at, cfg, _estimate_backend(args))
+    paths = write_outputs(r, args.out)
+    print(f"coverage {100 * r['coverage']:.1f}%, backend {r['meta']['backend']}, "
+          f"{len(r['lights'])} light(s), peak radiance {float(r['hdr'].max()):.3g}")
+    print(f"{'step':<12}{'seconds':>10}")
+    for k, v in r["timings"].items():
+        print(f"{k:<12}{v:>10.3f}")
+    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+# ----------------------------------------------------------------------------- train-completion
+
+def _add_train_completion(sub) -> None:
+    p = sub.add_parser("train-completion", help="train the panorama completion network",
+                       description="Generate the training set (Poly Haven maps minus the "
+                                   "held-out ones, sunsky skies, path-traced rooms, traced "
+                                   "surfel masks) and train the EV-conditioned completion "
+                                   "network in two steps within --minutes.")
+    train_completion.add_arguments(p)
+    p.set_defaults(func=_cmd_train_completion)
+
+
+def _cmd_train_completion(args) -> int:
+    set_variant("llvm_ad_rgb")
+    return train_completion.run_from_args(args)
+
+
+def _add_train_light_head(sub) -> None:
+    p = sub.add_parser("train-light-head", help="train the light head (power of clipped lights)",
+                       description="Generate clipped-light regions from the real maps minus "
+                                   "the held-out ones, sunsky skies and path-traced rooms at "
+                                   "several sizes, and fit the light head (minutes).")
+    train_light_head.add_arguments(p)
+    p.set_defaults(func=_cmd_train_light_head)
+
+
+def _cmd_train_light_head(args) -> int:
+    set_variant("llvm_ad_rgb")
+    return train_light_head.run_from_args(args)
