@@ -33,6 +33,7 @@ case "${1:-}" in
   demo) shift; exec "$VENV/bin/comgs" demo "$@" ;;
   test) shift; "$VENV/bin/lint-imports"
         export COMGS_NOTEBOOK_TINY="${COMGS_NOTEBOOK_TINY:-1}"   # notebooks at smoke-test sizes
+        export PYTHONFAULTHANDLER=1   # a crash in native code prints the Python stack
         exec "$VENV/bin/python" -m pytest -q "$@" ;;
   "") echo "[setup] done. Activate with: source $VENV/bin/activate" ;;
   *) echo "usage: bash setup.sh [demo|test] [extra args]" >&2; exit 2 ;;
