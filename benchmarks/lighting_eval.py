@@ -234,7 +234,7 @@ def evaluate(args, progress=print) -> dict:
             gt_r, smask = lm.render_spheres(gt, **sphere)
             obj_gt = 0.5 * (gt_r["diffuse"] + gt_r["matte_silver"])
             t_render.append(time.perf_counter() - t1)
-            ests, fused, lobes, t_lobes = {}, {}, None, 0.0
+            ests, fused, lobes = {}, {}, None
             for name, (be, with_lights) in methods.items():
                 t1 = time.perf_counter()
                 if be not in fused:

@@ -39,7 +39,7 @@ def _frame_quats(normals):
 
 
 def build_scene(env, sun_dir, dome_res: int, wedge_deg: float, max_elev_deg: float,
-                linear: bool = False, seed: int = 0):
+                seed: int = 0):
     """(Mitsuba scene, true map at [dome_res, 2·dome_res]) for an exposed map ``env``."""
     import mitsuba as mi
 
@@ -86,15 +86,14 @@ def build_scene(env, sun_dir, dome_res: int, wedge_deg: float, max_elev_deg: flo
     scales.append(np.full((len(gx), 2), 0.6 * step))
     cols.append(albedo * e_col / np.pi)
     means, normals, scales, cols = (np.concatenate(x) for x in (means, normals, scales, cols))
-    shown = cols if linear else expose(cols, 0.0)
-    sh = ((shown - 0.5) / SH_C0)[:, None, :]
+    sh = ((expose(cols, 0.0) - 0.5) / SH_C0)[:, None, :]           # the LDR capture
     params = SurfelParams.from_numpy(means, _frame_quats(normals), np.log(scales),
                                      np.full(len(means), 6.0), sh)
     scene = mi.load_dict({"type": "scene",
                           "scene": SurfelShapeBase.from_params(params, id="scene")})
     ground = (albedo.mean(0) * e_col / np.pi)
     truth = np.where(d[..., 2:] > 0, sky, ground)
-    return scene, truth, float((seen * dw).sum() / (4 * np.pi))
+    return scene, truth
 
 
 def main(argv=None):
@@ -142,7 +141,7 @@ def main(argv=None):
     for stem, env in cases:
         env = env * pano_data.auto_exposure(env)
         sun = extract_lights(env, k=1)[0]["direction"]
-        scene, truth, _ = build_scene(env, sun, a.dome_res, a.wedge, a.max_elev)
+        scene, truth = build_scene(env, sun, a.dome_res, a.wedge, a.max_elev)
         for name, (kind, head) in methods.items():
             t0 = time.perf_counter()
             cfg = EstimateConfig(width=2 * a.res, height=a.res, oct_res=32, label="outdoor",

@@ -119,7 +119,7 @@ def build_data(cfg: TrainLightHeadConfig, progress: bool = True) -> dict:
                    and p.stem not in cfg.held_out)
     rooms = [P.room_panorama(rng, 64, 128, spp=16, seed=cfg.seed * 7919 + i)
              for i in tqdm(range(cfg.n_rooms), desc="rooms", disable=not progress)]
-    feats, targets, groups, names = [], [], [], []
+    feats, targets, groups = [], [], []
     for h in cfg.heights:
         for i, p in enumerate(tqdm(files, desc=f"maps {h}px", disable=not progress)):
             _draws(rng, P.load_map(p, h, 2 * h).astype(np.float64), masks, cfg.draws_real,
