@@ -59,6 +59,9 @@ class DemoConfig:
     spp: int = 32
     sfm_points: int = 5000
     scene_elevation_deg: tuple = (30.0, 70.0)   # (8, 60) sees the sky: measured worse (no sky surfels)
+    sky_views: int = 8                          # capture views over the horizon (sky and sun)
+    sun_elevation_deg: float = 25.0
+    scene_background: str = "env"               # step 1 learns the sky behind the surfels
     scene_iterations: int = 800
     object_iterations: int = 800
     material_iterations: int = 300
@@ -71,7 +74,7 @@ class DemoConfig:
     def __post_init__(self):
         """Sizes are checked here, before anything is written (``--res 0`` used to render
         the procedural inputs first)."""
-        lows = {"resolution": 8, "sfm_points": 0, "seed": 0}
+        lows = {"resolution": 8, "sfm_points": 0, "seed": 0, "sky_views": 0}
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             if f.type in (int, "int") and (isinstance(v, bool) or not isinstance(v, int)
@@ -82,7 +85,7 @@ class DemoConfig:
 
 PRESETS = {
     "default": DemoConfig(),
-    "tiny": DemoConfig(resolution=24, scene_views=8, object_views=8, test_views=2, spp=4,
+    "tiny": DemoConfig(resolution=24, scene_views=8, sky_views=2, object_views=8, test_views=2, spp=4,
                        sfm_points=800, scene_iterations=30, object_iterations=30,
                        material_iterations=10, probes=200, shadow_probes=150, rays=16),
 }
@@ -153,7 +156,8 @@ def run_demo(cfg: DemoConfig) -> dict:
 
     with _stage("inputs + path-traced ground truth", times, prog):
         mesh = procedural.procedural_object_yup(out / "inputs" / f"{OBJECT}.ply")
-        sky = procedural.procedural_sky(out / "inputs" / "sky.exr")
+        sky = procedural.procedural_sky(out / "inputs" / "sky.exr",
+                                        sun_elevation_deg=cfg.sun_elevation_deg)
         studio = procedural.procedural_studio(out / "inputs" / "studio.exr")
         ds = out / "dataset"
         make_composition_dataset(CompositionDatasetConfig(
@@ -161,7 +165,7 @@ def run_demo(cfg: DemoConfig) -> dict:
             resolution=cfg.resolution, scene_views=cfg.scene_views,
             object_views=cfg.object_views, test_views=cfg.test_views, spp=cfg.spp,
             sfm_points=cfg.sfm_points, seed=cfg.seed, path_material=OBJECT_MATERIAL,
-            scene_elevation_deg=cfg.scene_elevation_deg),
+            scene_elevation_deg=cfg.scene_elevation_deg, sky_views=cfg.sky_views),
             progress=prog)
         meta = json.loads((ds / "composition.json").read_text())
 
@@ -170,7 +174,7 @@ def run_demo(cfg: DemoConfig) -> dict:
         write_run_info(scene_run, ds / "scene", "scene", 1, False)
         s1 = train_radiance(load_dataset(ds / "scene"), scene_run, RadianceConfig.from_preset(
             "scene", iterations=cfg.scene_iterations, eval_every=max(cfg.scene_iterations // 8, 1),
-            eval_views=4, seed=cfg.seed), progress=prog)
+            eval_views=4, seed=cfg.seed, background=cfg.scene_background), progress=prog)
     with _stage("object step 1 (surfels)", times, prog):
         write_run_info(obj_run, ds / "objects" / OBJECT, "object", 1, False)
         o1 = train_radiance(load_dataset(ds / "objects" / OBJECT), obj_run,

@@ -248,3 +248,29 @@ def test_coverage_numpy():
     assert coverage(band) < 1 / 8
     with pytest.raises(ValueError, match="H, W"):
         coverage(np.ones(5))
+
+
+def test_composite_background_fills_the_sky_only_where_observed():
+    """A ground plane traced from above it, plus a sky background seen over half the
+    azimuths: the sky fills exactly the uncovered, observed pixels; the ground is kept."""
+    from comgs_dr.surfels.panorama import composite_background
+    p = np.array([0.2, -0.1, 0.05])
+    out = trace_panorama(_scene({"ground": _ground()}), p, PanoramaConfig(width=W, height=H))
+    sky = np.zeros((H, W, 3)) + [0.3, 0.5, 0.9]
+    observed = np.zeros((H, W))
+    observed[:, : W // 2] = 1.0
+    res = composite_background(out, sky, observed)
+    a, a0 = res["alpha"], out["alpha"]
+    top = slice(0, H // 2 - 2)
+    assert np.allclose(a[top, : W // 2], 1.0) and np.allclose(a[top, W // 2:], a0[top, W // 2:])
+    assert np.allclose(res["ldr"][top, : W // 2], [0.3, 0.5, 0.9], atol=1e-6)
+    assert np.all(res["ldr"][top, W // 2:] == 0)                 # unobserved: still a hole
+    low = a0 > 0.999
+    assert np.allclose(res["ldr"][low], out["ldr"][low], atol=2e-3)          # ground kept
+    n = res["normal"][top, : W // 2]
+    assert np.allclose(n, -_pixel_dirs()[top, : W // 2], atol=1e-5)        # facing the point
+    assert res["meta"]["coverage"] > out["meta"]["coverage"] + 0.2
+    lin = res["rgb"][top, : W // 2]
+    assert np.allclose(lin, ((np.array([0.3, 0.5, 0.9]) + 0.055) / 1.055) ** 2.4, atol=1e-4)
+    with pytest.raises(ValueError, match="do not match"):
+        composite_background(out, sky[:, :-1], observed)

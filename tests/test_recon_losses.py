@@ -393,6 +393,24 @@ def test_mask_loss_value_and_gradient(rng):
     assert abs(fd - an) <= 1e-2 * abs(an), (fd, an)
 
 
+def test_binary_loss_value_gradient_and_extremes(rng):
+    Wt = rng.uniform(0.05, 0.95, (16, 12, 1))
+    Wf = Wt.astype(np.float32).astype(np.float64)
+    ref = np.mean(-Wf * np.log(Wf) - (1 - Wf) * np.log(1 - Wf))
+    tw = _t(Wt)
+    dr.enable_grad(tw)
+    loss = L.binary_loss(tw)
+    dr.backward(loss)
+    assert abs(_f(loss) - ref) < 1e-5 * ref
+    np.testing.assert_allclose(np.array(dr.grad(tw)), np.log((1 - Wf) / Wf) / Wf.size,
+                               rtol=1e-3, atol=1e-8)
+    v = rng.normal(size=Wt.shape)
+    fd, an = _directional(L.binary_loss, Wt, v, 1e-3), float((np.array(dr.grad(tw)) * v).sum())
+    assert abs(fd - an) <= 1e-2 * abs(an), (fd, an)
+    y, (g,) = _finite_grad(L.binary_loss, np.array([[0.0], [1.0], [0.5]]).reshape(3, 1, 1))
+    assert np.isfinite(y) and np.all(np.isfinite(g)) and abs(y - np.log(2) / 3) < 1e-4
+
+
 # ------------------------------------------------------------------ extreme inputs
 def _finite_grad(fn, *arrays):
     ts = [_t(a) for a in arrays]

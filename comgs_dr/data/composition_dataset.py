@@ -94,6 +94,12 @@ class CompositionDatasetConfig:
     #: elevation range of the scene's training cameras (degrees above the ground); low
     #: elevations see the horizon and the sky, as a capture at eye level does
     scene_elevation_deg: tuple[float, float] = (30.0, 70.0)
+    #: half side of the square ground; beyond it low cameras see the map's own horizon
+    ground_half: float = GROUND_HALF
+    #: extra training views from eye height that look out over the horizon (a capture that
+    #: turns around): they see the sky and the sun, which step 1's background learns
+    sky_views: int = 0
+    sky_pitch_deg: tuple[float, float] = (5.0, 30.0)
 
     def __post_init__(self):
         if isinstance(self.objects, str):
@@ -106,12 +112,13 @@ class CompositionDatasetConfig:
                 raise ValueError(f"unknown object {o!r}: use one of {', '.join(SHARED_OBJECTS)} "
                                  "or a path to an .obj/.ply mesh")
         bounds = {"scene_views": 1, "object_views": 1, "test_views": 1, "spp": 1, "max_depth": 1,
-                  "resolution": 8, "sfm_points": 0, "spp_test": 1}
+                  "resolution": 8, "sfm_points": 0, "spp_test": 1, "sky_views": 0}
         for name, lo in bounds.items():
             v = getattr(self, name)
             if v is not None and int(v) < lo:
                 raise ValueError(f"CompositionDatasetConfig.{name} must be >= {lo} (got {v})")
-        for name in ("object_scale", "spacing", "scene_envmap_scale", "object_envmap_scale"):
+        for name in ("object_scale", "spacing", "scene_envmap_scale", "object_envmap_scale",
+                     "ground_half"):
             if not float(v := getattr(self, name)) > 0:
                 raise ValueError(f"CompositionDatasetConfig.{name} must be > 0 (got {v})")
         bad = set(self.path_material or {}) - set(PATH_OBJECT)
@@ -179,15 +186,15 @@ def rot_z(deg: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def scene_layout(az: float, clear: float) -> dict:
+def scene_layout(az: float, clear: float, ground_half: float = GROUND_HALF) -> dict:
     """Shapes of the scene for sun azimuth ``az`` (deg) and objects within ``clear`` of the
     origin: the ground (top at z = 0), a brick wall on the side away from the sun (lit, it
     reflects onto the objects), a box to the side; {name: {type, to_world [4, 4], texture key
     or base_color, roughness, uv_repeat}}."""
     u = syn._direction(0.0, az)                                        # [3] towards the sun
     v = np.cross([0.0, 0.0, 1.0], u)
-    rep = 2 * GROUND_HALF / GROUND_TILE
-    shapes = {"ground": {"type": "rectangle", "to_world": np.diag([GROUND_HALF] * 2 + [1.0, 1.0]),
+    rep = 2 * ground_half / GROUND_TILE
+    shapes = {"ground": {"type": "rectangle", "to_world": np.diag([ground_half] * 2 + [1.0, 1.0]),
                          "texture": "ground", "roughness": 0.8, "uv_repeat": [rep, rep]},
               "wall": {"type": "cube", "texture": "wall", "roughness": 0.7, "uv_repeat": [3.0, 1.0]},
               "box": {"type": "cube", "base_color": [0.25, 0.45, 0.3], "roughness": 0.4}}
@@ -198,6 +205,22 @@ def scene_layout(az: float, clear: float) -> dict:
         m[:3, 3] = centre + [0.0, 0.0, half[2]]                    # resting on the ground
         shapes[key]["to_world"] = m
     return shapes
+
+
+def sky_cameras(n: int, radius: float, rng: np.random.Generator,
+                pitch_deg=(5.0, 30.0), height: float = 0.6) -> list[dict]:
+    """``n`` cameras at ``height`` on the circle of ``radius`` (the scene cameras' ring, outside
+    the wall and the box), each looking outwards (away from the centre) and ``pitch_deg``
+    above the horizon; azimuths and pitches stratified so that together they sweep the
+    whole horizon."""
+    out = []
+    for k, (a, p) in enumerate(zip((np.arange(n) + rng.uniform(0, 1, n)) * 360.0 / max(n, 1),
+                                   rng.permutation(np.linspace(*pitch_deg, max(n, 1))))):
+        o = radius * syn._direction(0.0, a) + [0.0, 0.0, height]
+        m = syn.look_at(o, o + syn._direction(p, a))
+        out.append({"elevation_deg": float(p), "azimuth_deg": float(a % 360.0),
+                    "to_world_mitsuba": m, "transform_matrix": m @ syn.GL_FROM_MITSUBA})
+    return out
 
 
 def place_objects(norm_verts: dict[str, np.ndarray], sun_az_deg: float, scale: float,
@@ -328,7 +351,7 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
         + np.sqrt(2) * cfg.object_scale                  # horizontal radius of the group
     comp_radius = float(1.1 * group_r / np.sin(np.radians(cfg.fov_deg) / 2))
     scene_radius = 1.25 * comp_radius
-    layout = scene_layout(az, group_r)
+    layout = scene_layout(az, group_r, float(cfg.ground_half))
     textures = write_textures(out / "assets")
     seconds = {}
 
@@ -338,7 +361,8 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
     # 1. the scene without objects
     t = time.perf_counter()
     cams = {"train": syn.train_cameras(cfg.scene_views, scene_radius, rng,
-                                       tuple(cfg.scene_elevation_deg)),
+                                       tuple(cfg.scene_elevation_deg))
+            + sky_cameras(cfg.sky_views, scene_radius, rng, tuple(cfg.sky_pitch_deg)),
             "test": syn.test_cameras(cfg.test_views, scene_radius, (35.0, 55.0))}
     empty = SceneRenderer(scene_dict(cfg, env, textures, layout))
     images = []
@@ -413,7 +437,7 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
                 for n, o in objects.items()}
     shapes = {k: {**sh, "to_world": sh["to_world"].tolist(), "texture": sh.get("texture") and
                   f"assets/{sh['texture']}.png"} for k, sh in layout.items()}
-    shapes["ground"].update(half_size=GROUND_HALF, top_z=0.0)
+    shapes["ground"].update(half_size=float(cfg.ground_half), top_z=0.0)
     meta = {
         "generator": GENERATOR_VERSION, "comgs_dr_version": package_version(),
         "mitsuba_version": mi.__version__, "variant": variant,
@@ -424,7 +448,8 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
                        "top row; Blender's Z-up equirect, as make-dataset object; all maps)"},
         "scene": {"dir": "scene", "envmap": str(scene_map.resolve()),
                   "envmap_scale": cfg.scene_envmap_scale, "sun_direction": sun.tolist(),
-                  "n_train": cfg.scene_views, "n_test": cfg.test_views,
+                  "n_train": cfg.scene_views + cfg.sky_views, "sky_views": cfg.sky_views,
+                  "n_test": cfg.test_views,
                   "sfm_points": int(cfg.sfm_points), "camera_radius": scene_radius,
                   "shapes": shapes, "bsdf": "twosided principled (specular 0.5, metallic 0); "
                   "rectangle [-1,1]^2 (normal +Z), cube [-1,1]^3, mapped by to_world"},
@@ -448,7 +473,7 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
         "seconds": {k: ({n: round(x, 2) for n, x in v.items()} if isinstance(v, dict)
                         else round(v, 2)) for k, v in seconds.items()}}
     (out / "composition.json").write_text(json.dumps(meta, indent=2))
-    return {"out_dir": str(out), "objects": list(objects), "n_scene_train": cfg.scene_views,
+    return {"out_dir": str(out), "objects": list(objects), "n_scene_train": cfg.scene_views + cfg.sky_views,
             "n_test": cfg.test_views, "n_object_train": cfg.object_views,
             "resolution": cfg.resolution, "seconds": seconds, "variant": variant}
 

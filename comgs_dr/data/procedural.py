@@ -64,14 +64,17 @@ def scene_dataset_config(out_dir, n_train: int = 60, n_test: int = 12, resolutio
         train_elevation_deg=(15.0, 75.0), sfm_points=points, seed=seed)
 
 
-def procedural_sky(path: Path, width: int = 256) -> Path:
-    """Equirect HDR sky (Z-up, the dataset's orientation): gradient, ground, small bright sun."""
+def procedural_sky(path: Path, width: int = 256, sun_elevation_deg: float = 40.1,
+                   sun_azimuth_deg: float = 45.8) -> Path:
+    """Equirect HDR sky (Z-up, the dataset's orientation): gradient, ground, a bright sun of
+    3 degrees radius at the given elevation / azimuth (from +X towards +Y)."""
     d = _directions(width)
     up = np.clip(d[..., 2], 0, 1)[..., None]
     sky = (1 - up) * np.array([0.9, 0.95, 1.1]) + up * np.array([0.25, 0.45, 1.0])
     ground = np.array([0.25, 0.2, 0.15])
     img = np.where(d[..., 2:3] > 0, sky, ground)
-    sun = np.array([np.cos(0.7) * np.cos(0.8), np.cos(0.7) * np.sin(0.8), np.sin(0.7)])
+    el, az = np.radians(sun_elevation_deg), np.radians(sun_azimuth_deg)
+    sun = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
     img = img + 400.0 * (d @ sun > np.cos(np.radians(3.0)))[..., None] * np.array([1.0, 0.95, 0.85])
     return write_exr(path, img.astype(np.float32), "equirect")
 

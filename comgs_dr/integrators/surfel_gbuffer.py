@@ -65,6 +65,12 @@ class SurfelGBufferBase:
      * - background
        - |float|
        - Grey level added to the colour as T_final · background (Default: 0)
+     * - env_background
+       - |bool|
+       - Add T_final · L_e(d) of the scene's environment emitter (any Mitsuba
+         emitter, e.g. ``octenvmap`` or ``envmap``) instead of the grey ``background``:
+         a sky / far-field model behind the surfels. Differentiable w.r.t. the
+         emitter's parameters too (Default: false; ignored without an environment)
      * - method
        - |string|
        - How camera rays find their hits: ``raster`` bins the surfels' ±3σ quads into
@@ -107,6 +113,7 @@ class SurfelGBufferBase:
         self.background = float(props.get("background", 0.0))
         if not (self.background == self.background) or self.background < 0:
             raise ValueError(f"surfel_gbuffer: 'background' must be ≥ 0, got {self.background}")
+        self.env_background = bool(props.get("env_background", False))
 
     # ---------------------------------------------------------------- AOVs
     def aov_names(self):
@@ -136,30 +143,47 @@ class SurfelGBufferBase:
         """Primal: trace + composite. Backward/Forward: adjoint over the stored hits."""
         shapes = composite.surfel_shapes(scene, "surfel_gbuffer")
         ray = mi.Ray3f(dr.detach(ray))
+        env = self._environment(scene)
         if mode == dr.ADMode.Primal:
+            bg = self.background if env is None else _env_radiance(env, ray, active)
             ctx = self._raster_ctx
             if ctx is not None and dr.width(ctx[1].x) == dr.width(ray.d):
                 hits = raster.find_hits(shapes, ctx[0], ray, ctx[1], self.max_hits, active)
-                out, acc, T = compositing.composite_hits(shapes, ray, hits, self.targets,
-                                                         self.background)
+                out, acc, T = compositing.composite_hits(shapes, ray, hits, self.targets, bg)
             else:
                 eps = self.epsilon if self.epsilon > 0 else composite.auto_epsilon(scene, shapes)
                 hits, out, acc, T = compositing.trace_composite(
-                    scene, shapes, ray, self.max_hits, eps, self.targets, self.background, active)
+                    scene, shapes, ray, self.max_hits, eps, self.targets, bg, active)
             L = out.get("color", mi.Color3f(0.0))
-            state = (hits, acc, T)
+            state = (hits, acc, T, bg)
             self._primal_cache = (self._cache_key, state) if self._cache_key is not None else None
             return mi.Spectrum(L), acc["weight"] > 0, self._flatten(out), state
-        hits, acc, T = state_in
+        hits, acc, T, bg = state_in
         if mode == dr.ADMode.Backward:
             grads = self._unflatten(δL, δaovs)
             compositing.composite_adjoint(mode, shapes, ray, hits, acc, T, self.targets,
-                                          grads, self.background)
+                                          grads, bg)
+            if env is not None and "color" in grads:        # ∂(T_final · L_e)/∂(emitter)
+                with dr.resume_grad():
+                    obj = dr.sum(grads["color"] * T * _env_radiance(env, ray, active, ad=True))
+                    dr.backward_from(obj, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
             return mi.Spectrum(0.0), acc["weight"] > 0, [], None
         tan = compositing.composite_adjoint(mode, shapes, ray, hits, acc, T, self.targets,
-                                            None, self.background)
+                                            None, bg)
+        if env is not None and "color" in tan:
+            with dr.resume_grad():
+                Le = _env_radiance(env, ray, active, ad=True)
+                tan["color"] = tan["color"] + T * mi.Color3f(dr.forward_to(
+                    Le, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad))
         L = tan.get("color", mi.Color3f(0.0))
         return mi.Spectrum(L), acc["weight"] > 0, self._flatten(tan), None
+
+    def _environment(self, scene):
+        """The scene's environment emitter when ``env_background`` asks for it and the
+        colour is rendered, else None (the grey ``background`` applies)."""
+        if not self.env_background or "color" not in self.targets:
+            return None
+        return scene.environment()
 
     def sample_rays(self, scene, sensor, sampler):
         """Camera rays, one per sample: through pixel centres unless ``jitter`` or spp > 1.
@@ -310,6 +334,19 @@ class SurfelGBufferBase:
     def to_string(self):
         return (f"SurfelGBufferIntegrator[max_hits={self.max_hits}, method={self.method}, "
                 f"targets={','.join(self.targets)}]")
+
+
+def _env_radiance(env, ray, active, ad: bool = False):
+    """L_e along the rays' directions (Mitsuba's miss convention: si.wi = −d), detached
+    unless ``ad``."""
+    si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ray.d))
+    si.wi = -ray.d
+    if ad:
+        return mi.Color3f(env.eval(si, active))
+    with dr.suspend_grad():
+        Le = mi.Color3f(env.eval(si, active))
+        dr.eval(Le)
+    return Le
 
 
 def integrator_class():

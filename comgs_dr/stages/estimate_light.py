@@ -49,6 +49,7 @@ from comgs_dr.lighting.completion import LABELS, CompletionBackend
 from comgs_dr.surfels import load_ply, panorama
 from comgs_dr.surfels.panorama import PanoramaConfig
 from comgs_dr.surfels.shape import SurfelShapeBase
+from comgs_dr.train import background as bgenv
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +80,8 @@ class EstimateConfig:
     n_lights: int = 3
     light_head: str = "default"     # weights of the light head; "default": the shipped ones
                                     # (skipped with a warning if absent); "none": no head
+    background: str = "auto"        # step 1's learned sky behind the surfels: "auto" (the
+                                    # PLY's run folder, if it has one), "none", or a folder
 
     def validate(self) -> None:
         if self.label not in LABELS:
@@ -203,6 +206,9 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     if n_bad:
         log.warning("estimate_light: %d traced pixels hold NaN/Inf (degenerate surfels?); "
                     "they are treated as unobserved", n_bad)
+    bg_dir = _background_dir(cfg.background, scene_or_ply_path)
+    if bg_dir is not None:
+        trace = add_background(trace, bg_dir)
     rgb, normal, mask = backend_input(trace)
     cov = _coverage(mask)
     if cov <= 0.0:
@@ -255,6 +261,40 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     return {"hdr": radiance, "oct": oct_map, "ldrs": ldrs,
             "input": {"rgb": rgb, "normal": normal, "mask": mask},
             "lights": lights, "lobes": lobes, "coverage": cov, "timings": timings, "meta": meta}
+
+
+def _background_dir(spec: str, source) -> Path | None:
+    """The run folder whose learned background to use, or None."""
+    if spec == "none":
+        return None
+    if spec == "auto":
+        if not isinstance(source, (str, Path)):
+            return None
+        d = Path(source).parent
+        return d if (d / bgenv.FILE).is_file() else None
+    d = Path(spec)
+    if not d.exists():
+        raise FileNotFoundError(f"estimate_light: background {spec!r}: no such folder "
+                                f"(expected a step-1 run folder with {bgenv.FILE})")
+    d = d if d.is_dir() else d.parent
+    if not (d / bgenv.FILE).is_file():
+        raise FileNotFoundError(f"estimate_light: background {spec!r}: no {bgenv.FILE} in {d}")
+    return d
+
+
+def add_background(trace: dict, run_dir) -> dict:
+    """``trace`` with step 1's learned background (``train.background``) behind the surfels,
+    where the capture saw it (:func:`comgs_dr.surfels.panorama.composite_background`)."""
+    rad, obs = bgenv.load(run_dir)
+    H, W = trace["alpha"].shape
+    rad_eq = envmap.oct_to_equirect_np(rad, W)                                   # [H, W, 3]
+    obs_eq = envmap.oct_to_equirect_np(np.repeat(obs[..., None], 3, -1), W)[..., 0]
+    if rad_eq.shape[:2] != (H, W):
+        raise ValueError(f"estimate_light: the panorama must be 2:1 to add a background, got "
+                         f"{W}x{H}")
+    out = panorama.composite_background(trace, rad_eq, obs_eq)
+    out["meta"]["background"] = str(run_dir)
+    return out
 
 
 def _load_head(spec: str):

@@ -33,6 +33,7 @@ from comgs_dr.surfels.params import (
     field_to_numpy,
 )
 from comgs_dr.surfels.scene import gbuffer_scene
+from comgs_dr.train import background as bgenv
 from comgs_dr.train import checkpoint as ck
 from comgs_dr.train import init as I
 from comgs_dr.train import losses as L
@@ -90,6 +91,10 @@ class RadianceConfig:
     lambda_d2n: float = 0.2
     lambda_mask: float = 0.05             # object preset only
     random_background: bool = True        # datasets with alpha: a random grey behind each step
+    background: str = "grey"              # grey | env: a learned sky / far field (train.background)
+    env_resolution: int = 64              # octahedral texels per side of the env background
+    lr_env: float = 0.01
+    lambda_binary: float = 0.05           # coverage entropy, with the env background only
     d2n_from: int = 300
     lr_means: float = 1.6e-4              # × scene extent, decays to lr_means_final
     lr_means_final: float = 1.6e-6
@@ -115,6 +120,11 @@ class RadianceConfig:
             raise ValueError("RadianceConfig.iterations must be ≥ 1")
         if self.sh_degree not in (0, 1, 2, 3):
             raise ValueError("RadianceConfig.sh_degree must be 0..3")
+        if self.background not in ("grey", "env"):
+            raise ValueError(f"RadianceConfig.background must be 'grey' or 'env', got "
+                             f"{self.background!r}")
+        if self.env_resolution < 4:
+            raise ValueError("RadianceConfig.env_resolution must be >= 4")
         if self.densify is None:
             self.densify = dict(max_fraction=0.0, opacity_reset_interval=10 ** 9)
         if self.max_scale_frac is None:
@@ -132,6 +142,7 @@ class RadianceConfig:
         """The step-1 loss with this config's weights (no mask term for scenes)."""
         return L.Step1Loss(lambda_d2n=self.lambda_d2n, lambda_ssim=self.lambda_ssim,
                            lambda_mask=self.lambda_mask if self.preset == "object" else 0.0,
+                           lambda_binary=self.lambda_binary if self.background == "env" else 0.0,
                            d2n_from_iteration=self.d2n_from)
 
 
@@ -222,6 +233,12 @@ def initial_surfels(data, cfg: RadianceConfig, rng) -> tuple[SurfelParams, str]:
     raise ValueError(f"unknown init {cfg.init!r}: auto, hull, points, nearfar, random or a .ply path")
 
 
+def _from_numpy(name, a, like):
+    """Adam moments from a checkpoint: surfel fields, or the flat env background."""
+    return type(like)(np.ravel(a).astype(np.float32)) if name == "env" else \
+        field_from_numpy(name, a, like)
+
+
 def _with_sh_degree(p: SurfelParams, degree: int) -> SurfelParams:
     d = p.to_numpy()
     k = (degree + 1) ** 2
@@ -267,17 +284,24 @@ class Trainer:
         targets = "color,weight,depth_unbiased,normal" if cfg.lambda_d2n > 0 else "color,weight"
         bg = 1.0 if data.white_background else 0.0
         self.background = bg
+        self.env = cfg.background == "env"
+        self.keys = dict(PARAM_KEYS, **({"env": bgenv.KEY} if self.env else {}))
+        extra = dict(environment=bgenv.initial_emitter(cfg.env_resolution, self.views),
+                     env_background=True) if self.env else {}
         self.scene = gbuffer_scene({"surfels": params}, sensors, max_hits=cfg.max_hits,
-                                   targets=targets, background=bg)
+                                   targets=targets, background=bg, **extra)
         self.integ = self.scene.integrator()
         self.mp = mi.traverse(self.scene)
-        self.mp.keep(r"surfels\..*")        # update() walks every kept key: leave the sensors out
+        # update() walks every kept key: leave the sensors out
+        self.mp.keep(r"surfels\..*|environment\.data")
+        if resumed is not None and self.env and "env" in arrays:
+            self.mp[bgenv.KEY] = mi.TensorXf(arrays["env"])
         self.shape = self.scene.shapes()[0]
         self.opt = mi.ad.Adam(lr=1.0)
         self._register(params)
         if moments is not None:
             try:
-                ck.restore_moments(self.opt, PARAM_KEYS, moments, field_from_numpy)
+                ck.restore_moments(self.opt, self.keys, moments, _from_numpy)
             except (KeyError, ValueError, TypeError, RuntimeError) as e:
                 raise ValueError(f"checkpoint {self.run_dir / ck.CKPT_NAME}: its Adam state does "
                                  f"not fit its surfels ({e}); delete it to start over") from e
@@ -297,7 +321,7 @@ class Trainer:
 
     def _register(self, params: SurfelParams):
         self._install(params)
-        for f, key in PARAM_KEYS.items():
+        for key in self.keys.values():
             self.opt[key] = self.mp[key]
         self._set_learning_rates()
         self.mp.update(self.opt)
@@ -312,7 +336,7 @@ class Trainer:
         self.opt.set_learning_rate({
             "surfels.means": self._lr_means(), "surfels.sh": mi.Float(sh_lr.ravel()),
             "surfels.opacity_logit": c.lr_opacity, "surfels.log_scales": c.lr_scales,
-            "surfels.quats": c.lr_quats})
+            "surfels.quats": c.lr_quats, **({bgenv.KEY: c.lr_env} if self.env else {})})
 
     def run_fraction(self) -> float:
         """Fraction of the run done: iterations, or the time budget when that ends it first.
@@ -367,7 +391,7 @@ class Trainer:
         from 28.1 dB (625 its) to 26.0 dB (1000 its). Behind a random grey a hole is wrong on
         average, as NeRF trainers do for RGBA data.
         """
-        if not self.cfg.random_background or any(m is None for m in self.masks):
+        if self.env or not self.cfg.random_background or any(m is None for m in self.masks):
             return None
         return float(self.rng.uniform(0.0, 1.0))
 
@@ -400,6 +424,8 @@ class Trainer:
         self.opt.set_learning_rate({key: self._lr_means()})
         self.opt.step()
         self._clamp()
+        if self.env:
+            bgenv.clamp(self.opt)
         self.mp.update(self.opt)
         self.iteration += 1
         stats = dict(parts)
@@ -421,7 +447,7 @@ class Trainer:
 
     def _guard_gradients(self) -> int:
         """Replace non-finite gradients by 0 (counted, logged) so one bad ray cannot poison Adam."""
-        return zero_nonfinite_grads(self.opt, PARAM_KEYS.values())
+        return zero_nonfinite_grads(self.opt, self.keys.values())
 
     def _clamp(self):
         """Keep raw parameters in the ranges where activations are well behaved."""
@@ -462,12 +488,18 @@ class Trainer:
     def snapshot(self) -> dict:
         """A host copy of the surfels (the Adam moments are not kept: a restored state
         ends the run)."""
-        return self.params().to_numpy()
+        snap = self.params().to_numpy()
+        if self.env:
+            snap["env"] = np.array(self.mp[bgenv.KEY])
+        return snap
 
     def restore(self, state: dict) -> None:
         """Install a snapshot into the scene and the optimiser (moments restart at zero)."""
+        state = dict(state)
+        if self.env:
+            self.mp[bgenv.KEY] = mi.TensorXf(state.pop("env"))
         self._install(SurfelParams.from_numpy(**state))
-        for key in PARAM_KEYS.values():
+        for key in self.keys.values():
             self.opt[key] = self.mp[key]
             self.opt.reset(key)
         self._set_learning_rates()
@@ -482,11 +514,12 @@ class Trainer:
     def checkpoint(self):
         n = self.params().count
         ck.save_checkpoint(
-            self.checkpoint_path, CKPT_FORMAT, self.params().to_numpy(), self.opt,
-            PARAM_KEYS, {"iteration": self.iteration, "log": self.log, "elapsed": self.elapsed,
+            self.checkpoint_path, CKPT_FORMAT, self.snapshot(), self.opt,
+            self.keys, {"iteration": self.iteration, "log": self.log, "elapsed": self.elapsed,
                          "init": self.init_desc, "rng_state": self.rng.bit_generator.state,
                          "config": dataclasses.asdict(self.cfg)},
-            to_numpy=lambda f, v: field_to_numpy(f, v, n))
+            to_numpy=lambda f, v: np.asarray(v, np.float32) if f == "env" else
+            field_to_numpy(f, v, n))
 
     def log_fields(self) -> dict:
         return {"surfels": self.params().count}
@@ -503,6 +536,9 @@ def train_radiance(data, run_dir, cfg: RadianceConfig, progress: bool = True) ->
     diverged = best.settle(tr, final["psnr_select"], tr.iteration, "step 1")   # summary only
     final = tr.evaluate()
     save_ply(tr.params(), str(run_dir / "point_cloud.ply"))
+    if tr.env:
+        bgenv.save(run_dir, np.array(tr.mp[bgenv.KEY]), bgenv.observed_fraction(
+            tr.scene, tr.integ, list(range(len(tr.views))), cfg.env_resolution))
     summary = {"iterations": tr.iteration, "train_seconds": tr.elapsed, "surfels": tr.params().count,
                "init": tr.init_desc, "stopped_early": stopped_early, "diverged": diverged, **final,
                "config": dataclasses.asdict(cfg)}

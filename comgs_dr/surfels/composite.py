@@ -9,7 +9,7 @@ analytically from the gathered parameters (:func:`eval_surfel`):
   to K ordered hits with α ≥ 1/255 per ray (the *hit buffer*; the origin
   advances by t + ε after each hit) and accumulate B in the same symbolic loop.
 * :func:`composite_adjoint` — reverse or forward mode over the stored hits,
-  without re-tracing. With S_i = Σ_{j>i} T_j α_j b_j (+ T_final·background)
+  without re-tracing. With S_i = Σ_{j>i} T_j α_j b_j (+ T_final·background, a grey or per-ray radiance)
   = B − Σ_{j≤i} T_j α_j b_j, the derivative of B is
   dB = Σ_i [ T_i α_i db_i + dα_i (T_i b_i − S_i / (1 − α_i)) ],
   so each hit contributes the local surrogate y_i = T_i α_i b_i − α_i S_i/(1−α_i)
@@ -167,11 +167,19 @@ def _opaque(value: float):
     return dr.opaque(mi.Float, float(value))
 
 
-def finish(acc: dict, targets, T_final, background: float = 0.0) -> dict:
+def with_background(color, T_final, background):
+    """C + T_final · background: ``background`` a grey level (float) or per-ray radiance
+    (``mi.Color3f``, e.g. an environment map looked up along the rays)."""
+    if isinstance(background, (int, float)):
+        return color + T_final * _opaque(background) if background > 0 else color
+    return color + T_final * mi.Color3f(background)
+
+
+def finish(acc: dict, targets, T_final, background=0.0) -> dict:
     """Requested outputs from accumulated buffers (adds background, unbiased depth)."""
     out = {t: acc[t] for t in targets if t in acc}
-    if "color" in out and background > 0:
-        out["color"] = out["color"] + T_final * _opaque(background)
+    if "color" in out:
+        out["color"] = with_background(out["color"], T_final, background)
     if "depth_unbiased" in targets:
         W = acc["weight"]
         out["depth_unbiased"] = dr.select(W > 1e-6, acc["depth"] / dr.maximum(W, 1e-6), 0.0)
@@ -230,7 +238,7 @@ def trace_composite(scene, shapes, ray, K: int, eps: float, targets, background=
     return HitBuffer(ids=ids, slots=slots, count=count, K=K), out, acc, T
 
 
-def composite_hits(shapes, ray, hits: HitBuffer, targets, background: float = 0.0):
+def composite_hits(shapes, ray, hits: HitBuffer, targets, background=0.0):
     """Primal compositing of a given hit buffer (no AD), e.g. from the rasteriser.
 
     Returns (outputs {target: value}, acc {base buffer: value}, T_final), as
@@ -263,7 +271,7 @@ def composite_hits(shapes, ray, hits: HitBuffer, targets, background: float = 0.
 
 
 def composite_adjoint(mode, shapes, ray, hits: HitBuffer, acc: dict, T_final, targets,
-                      grad_out: dict | None = None, background: float = 0.0) -> dict:
+                      grad_out: dict | None = None, background=0.0) -> dict:
     """Reverse (``grad_out`` = adjoints of the outputs) or forward mode over stored hits.
 
     Backward: accumulates parameter gradients (returns {}). Forward: returns the
@@ -275,8 +283,8 @@ def composite_adjoint(mode, shapes, ray, hits: HitBuffer, acc: dict, T_final, ta
     with dr.suspend_grad():
         ray = mi.Ray3f(dr.detach(ray))
         B = dict(acc)
-        if "color" in B and background > 0:
-            B["color"] = B["color"] + T_final * _opaque(background)
+        if "color" in B:
+            B["color"] = with_background(B["color"], T_final, background)
         if backward:
             δ = {k: grad_out.get(k, _zero(k, R)) for k in names}
             if "depth_unbiased" in targets and "depth_unbiased" in grad_out:
@@ -332,7 +340,7 @@ def composite_adjoint(mode, shapes, ray, hits: HitBuffer, acc: dict, T_final, ta
     return out
 
 
-def composite_unrolled(shapes, ray, hits: HitBuffer, targets, background: float = 0.0) -> dict:
+def composite_unrolled(shapes, ray, hits: HitBuffer, targets, background=0.0) -> dict:
     """Reference: Python-unrolled front-to-back loop over K with plain AD.
 
     Slow to compile for large K; use :func:`composite_adjoint` in pipelines.

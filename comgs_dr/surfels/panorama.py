@@ -25,7 +25,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core import colorspace
-from comgs_dr.core.equirect import coverage, pixel_directions
+from comgs_dr.core.equirect import coverage, equirect_directions, pixel_directions
 from comgs_dr.surfels import composite
 from comgs_dr.surfels.composite import trace_composite
 from comgs_dr.surfels.shape import SurfelShapeBase, ensure_proxies
@@ -218,3 +218,40 @@ def trace_panorama(scene, position, cfg: PanoramaConfig | None = None,
     return {"rgb": rgb.reshape(H, Wd, 3).astype(f32), "ldr": ldr.reshape(H, Wd, 3).astype(f32),
             "alpha": alpha.astype(f32), "normal": normal.reshape(H, Wd, 3).astype(f32),
             "depth": depth.reshape(H, Wd).astype(f32), "meta": meta}
+
+
+def composite_background(trace: dict, radiance: np.ndarray, observed: np.ndarray) -> dict:
+    """A :func:`trace_panorama` result with a far-field background behind the surfels.
+
+    ``radiance`` [H, W, 3]: the background in the radiance field's own colour space
+    (step 1's learned environment, looked up at the panorama's pixels); ``observed``
+    [H, W] in [0, 1]: how much of it the capture saw (``comgs_dr.train.background``).
+    Where the surfels leave transmittance T = 1 − W, the background adds T·observed of
+    coverage: alpha' = W + T·o, colours are the coverage-weighted mix, normals of the
+    background face the position (−d), the depth stays the surfels'. Directions from the
+    position are the capture's directions: the background is at infinity.
+    """
+    H, Wd = trace["alpha"].shape
+    if radiance.shape != (H, Wd, 3) or observed.shape != (H, Wd):
+        raise ValueError(f"composite_background: background {radiance.shape} / observed "
+                         f"{observed.shape} do not match the panorama {(H, Wd)}")
+    W = np.clip(trace["alpha"].astype(np.float64), 0.0, 1.0)                     # [H, W]
+    o = np.clip(observed, 0.0, 1.0) * (1.0 - W)                                  # [H, W]
+    a = W + o
+    inv = np.where(a >= W_EPS, 1.0 / np.maximum(a, W_EPS), 0.0)[..., None]
+    srgb = trace["meta"].get("colour_space", "srgb") == "srgb"
+    env = np.maximum(np.asarray(radiance, np.float64), 0.0)
+    env_lin = np.asarray(colorspace.srgb_decode(np.clip(env, 0.0, 1.0))) if srgb else env
+    out = dict(trace)
+    out["ldr"] = ((W[..., None] * trace["ldr"] + o[..., None] * env) * inv).astype(np.float32)
+    out["rgb"] = ((W[..., None] * trace["rgb"] + o[..., None] * env_lin) * inv).astype(np.float32)
+    n = W[..., None] * trace["normal"] - o[..., None] * equirect_directions(H, Wd)
+    nlen = np.linalg.norm(n, axis=-1, keepdims=True)
+    out["normal"] = np.where(nlen > 1e-12, n / np.maximum(nlen, 1e-12), 0.0).astype(np.float32)
+    out["alpha"] = a.astype(np.float32)
+    meta = dict(trace["meta"])
+    meta["coverage_surfels"] = meta.get("coverage")
+    meta["coverage"] = coverage(a)
+    meta["background"] = True
+    out["meta"] = meta
+    return out

@@ -7,11 +7,13 @@ from comgs_dr.surfels.params import SurfelParams
 from comgs_dr.surfels.shape import SurfelShapeBase
 
 
-def gbuffer_scene(surfels, sensors, **integrator_props) -> mi.Scene:
+def gbuffer_scene(surfels, sensors, environment=None, **integrator_props) -> mi.Scene:
     """A scene with surfel shapes, sensors and a ``surfel_gbuffer`` integrator.
 
     ``surfels``: a SurfelParams, a surfels shape, or a dict {id: either};
     ``sensors``: a sensor dict/object or a list of them;
+    ``environment``: an emitter (dict or object) stored under the key ``environment``
+    (seen with ``env_background=True``);
     ``integrator_props``: e.g. ``max_hits=16, targets="color,weight"``.
     """
     if not isinstance(surfels, dict):
@@ -19,6 +21,8 @@ def gbuffer_scene(surfels, sensors, **integrator_props) -> mi.Scene:
     d = {"type": "scene", "integrator": {"type": "surfel_gbuffer", **integrator_props}}
     for key, s in surfels.items():
         d[key] = SurfelShapeBase.from_params(s, id=key) if isinstance(s, SurfelParams) else s
+    if environment is not None:
+        d["environment"] = environment
     if not isinstance(sensors, (list, tuple)):
         sensors = [sensors]
     for i, s in enumerate(sensors):

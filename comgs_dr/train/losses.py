@@ -293,10 +293,21 @@ def mask_loss(weight, mask, eps: float = 1e-5) -> mi.Float:
     return dr.mean(-k * dr.log(w) - (1.0 - k) * dr.log(1.0 - w))
 
 
+def binary_loss(weight, eps: float = 1e-5) -> mi.Float:
+    """L_bin = mean(−W log W − (1 − W) log(1 − W)): the entropy of every pixel's coverage,
+    lowest when a ray is either fully covered by surfels or not at all. With a learned
+    background behind the surfels (``train.background``) it keeps the background from
+    showing through half-transparent surfels, where it would learn the near scene (as the
+    background entropy losses of radiance-field trainers of unbounded scenes)."""
+    fw, *_ = _image(weight, "binary_loss: weight", channels=1)
+    w = dr.clip(fw, eps, 1.0 - eps)
+    return dr.mean(-w * dr.log(w) - (1.0 - w) * dr.log(1.0 - w))
+
+
 # ------------------------------------------------------------------ total
 @dataclasses.dataclass
 class Step1Loss:
-    """L = L_rgb + λ_d2n L_d2n + λ_mask L_mask (ComGS reconstruction step 1).
+    """L = L_rgb + λ_d2n L_d2n + λ_mask L_mask (+ λ_bin L_bin) (ComGS reconstruction step 1).
 
     ``d2n_from_iteration``: the depth–normal term is off before this iteration (2DGS enables
     its normal loss at 7k of 30k). The defaults are those of ``RadianceConfig`` (object
@@ -305,6 +316,7 @@ class Step1Loss:
     lambda_d2n: float = 0.2
     lambda_mask: float = 0.05
     lambda_ssim: float = 0.2
+    lambda_binary: float = 0.0
     d2n_from_iteration: int = 300
     d2n_min_weight: float = 0.5
     detach_depth_normal: bool = False
@@ -331,7 +343,7 @@ class Step1Loss:
         ssimv = dr.mean(_ssim_flat(fc, fg, H, W, C, 11, 1.5, 0.01 ** 2, 0.03 ** 2))
         rgb = l1v + self.lambda_ssim * (1.0 - ssimv)
         total, zero = rgb, mi.Float(0.0)
-        d2n = mk = zero
+        d2n = mk = bn = zero
         if self.d2n_active(iteration):
             missing = [k for k in ("normal", "depth_unbiased", "weight") if k not in buffers]
             if missing:
@@ -348,9 +360,16 @@ class Step1Loss:
                 raise ValueError("Step1Loss: L_mask needs the 'weight' buffer")
             mk = mask_loss(buffers["weight"], mask, self.mask_eps)
             total = total + self.lambda_mask * mk
-        dr.eval(total, l1v, ssimv, rgb, d2n, mk)
+        if self.lambda_binary > 0:
+            if "weight" not in buffers:
+                raise ValueError("Step1Loss: L_bin needs the 'weight' buffer")
+            bn = binary_loss(buffers["weight"], self.mask_eps)
+            total = total + self.lambda_binary * bn
+        dr.eval(total, l1v, ssimv, rgb, d2n, mk, bn)
         parts = {"l1": _scalar(l1v), "ssim": _scalar(ssimv), "rgb": _scalar(rgb),
                  "d2n": _scalar(d2n), "mask": _scalar(mk), "total": _scalar(total)}
+        if self.lambda_binary > 0:
+            parts["binary"] = _scalar(bn)
         return total, parts
 
 
