@@ -233,12 +233,6 @@ def initial_surfels(data, cfg: RadianceConfig, rng) -> tuple[SurfelParams, str]:
     raise ValueError(f"unknown init {cfg.init!r}: auto, hull, points, nearfar, random or a .ply path")
 
 
-def _from_numpy(name, a, like):
-    """Adam moments from a checkpoint: surfel fields, or the flat env background."""
-    return type(like)(np.ravel(a).astype(np.float32)) if name == "env" else \
-        field_from_numpy(name, a, like)
-
-
 def _with_sh_degree(p: SurfelParams, degree: int) -> SurfelParams:
     d = p.to_numpy()
     k = (degree + 1) ** 2
@@ -285,7 +279,6 @@ class Trainer:
         bg = 1.0 if data.white_background else 0.0
         self.background = bg
         self.env = cfg.background == "env"
-        self.keys = dict(PARAM_KEYS, **({"env": bgenv.KEY} if self.env else {}))
         extra = dict(environment=bgenv.initial_emitter(cfg.env_resolution, self.views),
                      env_background=True) if self.env else {}
         self.scene = gbuffer_scene({"surfels": params}, sensors, max_hits=cfg.max_hits,
@@ -294,14 +287,20 @@ class Trainer:
         self.mp = mi.traverse(self.scene)
         # update() walks every kept key: leave the sensors out
         self.mp.keep(r"surfels\..*|environment\.data")
-        if resumed is not None and self.env and "env" in arrays:
+        if resumed is not None and self.env and "env" in arrays:   # (its Adam restarts)
             self.mp[bgenv.KEY] = mi.TensorXf(arrays["env"])
         self.shape = self.scene.shapes()[0]
         self.opt = mi.ad.Adam(lr=1.0)
         self._register(params)
+        # the background has its own Adam, which moves only texels with a gradient: most
+        # views do not see most of the sky, and momentum-only steps made it drift into noise
+        self.env_opt = mi.ad.Adam(lr=cfg.lr_env, mask_updates=True) if self.env else None
+        if self.env:
+            self.env_opt[bgenv.KEY] = self.mp[bgenv.KEY]
+            self.mp.update(self.env_opt)
         if moments is not None:
             try:
-                ck.restore_moments(self.opt, self.keys, moments, _from_numpy)
+                ck.restore_moments(self.opt, PARAM_KEYS, moments, field_from_numpy)
             except (KeyError, ValueError, TypeError, RuntimeError) as e:
                 raise ValueError(f"checkpoint {self.run_dir / ck.CKPT_NAME}: its Adam state does "
                                  f"not fit its surfels ({e}); delete it to start over") from e
@@ -321,7 +320,7 @@ class Trainer:
 
     def _register(self, params: SurfelParams):
         self._install(params)
-        for key in self.keys.values():
+        for key in PARAM_KEYS.values():
             self.opt[key] = self.mp[key]
         self._set_learning_rates()
         self.mp.update(self.opt)
@@ -336,7 +335,7 @@ class Trainer:
         self.opt.set_learning_rate({
             "surfels.means": self._lr_means(), "surfels.sh": mi.Float(sh_lr.ravel()),
             "surfels.opacity_logit": c.lr_opacity, "surfels.log_scales": c.lr_scales,
-            "surfels.quats": c.lr_quats, **({bgenv.KEY: c.lr_env} if self.env else {})})
+            "surfels.quats": c.lr_quats})
 
     def run_fraction(self) -> float:
         """Fraction of the run done: iterations, or the time budget when that ends it first.
@@ -425,7 +424,9 @@ class Trainer:
         self.opt.step()
         self._clamp()
         if self.env:
-            bgenv.clamp(self.opt)
+            self.env_opt.step()
+            bgenv.clamp(self.env_opt)
+            self.mp[bgenv.KEY] = self.env_opt[bgenv.KEY]
         self.mp.update(self.opt)
         self.iteration += 1
         stats = dict(parts)
@@ -447,7 +448,8 @@ class Trainer:
 
     def _guard_gradients(self) -> int:
         """Replace non-finite gradients by 0 (counted, logged) so one bad ray cannot poison Adam."""
-        return zero_nonfinite_grads(self.opt, self.keys.values())
+        bad = zero_nonfinite_grads(self.opt, PARAM_KEYS.values())
+        return bad + (zero_nonfinite_grads(self.env_opt, [bgenv.KEY]) if self.env else 0)
 
     def _clamp(self):
         """Keep raw parameters in the ranges where activations are well behaved."""
@@ -499,9 +501,12 @@ class Trainer:
         if self.env:
             self.mp[bgenv.KEY] = mi.TensorXf(state.pop("env"))
         self._install(SurfelParams.from_numpy(**state))
-        for key in self.keys.values():
+        for key in PARAM_KEYS.values():
             self.opt[key] = self.mp[key]
             self.opt.reset(key)
+        if self.env:
+            self.env_opt[bgenv.KEY] = self.mp[bgenv.KEY]
+            self.env_opt.reset(bgenv.KEY)
         self._set_learning_rates()
         self.mp.update(self.opt)
         self.density._reset_stats(self.params().count)
@@ -515,11 +520,10 @@ class Trainer:
         n = self.params().count
         ck.save_checkpoint(
             self.checkpoint_path, CKPT_FORMAT, self.snapshot(), self.opt,
-            self.keys, {"iteration": self.iteration, "log": self.log, "elapsed": self.elapsed,
+            PARAM_KEYS, {"iteration": self.iteration, "log": self.log, "elapsed": self.elapsed,
                          "init": self.init_desc, "rng_state": self.rng.bit_generator.state,
                          "config": dataclasses.asdict(self.cfg)},
-            to_numpy=lambda f, v: np.asarray(v, np.float32) if f == "env" else
-            field_to_numpy(f, v, n))
+            to_numpy=lambda f, v: field_to_numpy(f, v, n))
 
     def log_fields(self) -> dict:
         return {"surfels": self.params().count}
