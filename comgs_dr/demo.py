@@ -61,6 +61,7 @@ class DemoConfig:
     scene_elevation_deg: tuple = (30.0, 70.0)   # (8, 60) sees the sky: measured worse (no sky surfels)
     sky_views: int = 8                          # capture views over the horizon (sky and sun)
     sun_elevation_deg: float = 25.0
+    scene_exposure: float = 0.6                 # the capture exposes for the sky (only the sun clips)
     scene_background: str = "env"               # step 1 learns the sky behind the surfels
     scene_iterations: int = 800
     object_iterations: int = 800
@@ -165,7 +166,8 @@ def run_demo(cfg: DemoConfig) -> dict:
             resolution=cfg.resolution, scene_views=cfg.scene_views,
             object_views=cfg.object_views, test_views=cfg.test_views, spp=cfg.spp,
             sfm_points=cfg.sfm_points, seed=cfg.seed, path_material=OBJECT_MATERIAL,
-            scene_elevation_deg=cfg.scene_elevation_deg, sky_views=cfg.sky_views),
+            scene_elevation_deg=cfg.scene_elevation_deg, sky_views=cfg.sky_views,
+            scene_envmap_scale=cfg.scene_exposure),
             progress=prog)
         meta = json.loads((ds / "composition.json").read_text())
 
@@ -216,7 +218,7 @@ def run_demo(cfg: DemoConfig) -> dict:
     comparison_figure(ds / "comp" / "gt", {v: comp / "renders" / v for v in VARIANTS}, names,
                       scores).save(out / "comparison.png")
     est = estimated[OBJECT]["hdr"]
-    true_eq = envmap.read_envmap_file(meta["scene"]["envmap"])[0]
+    true_eq = envmap.read_envmap_file(meta["scene"]["envmap"])[0] * meta["scene"]["envmap_scale"]
     envmap_figure(true_eq, est).save(out / "envmaps.png")
     light_err = lighting_metrics.compare_maps(est, true_eq)
 
