@@ -72,6 +72,17 @@ def test_clipped_region_across_the_seam_is_one():
     assert abs(regions[0].direction[1]) < 1e-9 and regions[0].direction[0] < 0   # u = 0 is -X
 
 
+def test_regions_clipped_in_one_channel_only_are_not_lights():
+    h, w = 32, 64
+    ldr = np.full((h, w, 3), 0.3)
+    ldr[5:7, 10:12] = [0.6, 0.8, 1.0]                  # a saturated blue speck
+    ldr[20:22, 40:42] = [1.0, 0.9, 0.5]                # orange, clipped in red only...
+    ldr[21, 41] = 1.0                                  # ...with a white core
+    regions = L.clipped_regions(ldr, np.ones((h, w)))
+    assert len(regions) == 1 and regions[0].pixels[20:22, 40:42].all()
+    assert len(L.clipped_regions(ldr, np.ones((h, w)), white_core=False)) == 2
+
+
 @pytest.mark.parametrize("case", ["all_clipped", "one_pixel_at_pole", "no_ring", "black"])
 def test_features_are_finite_on_extreme_panoramas(case):
     h, w = 32, 64

@@ -126,13 +126,26 @@ def _check(ldr, mask):
     return np.clip(ldr, 0.0, 1.0), mask > 0.5
 
 
-def clipped_regions(ldr, mask, sat: float = SAT, max_regions: int = MAX_REGIONS) -> list:
+def clipped_regions(ldr, mask, sat: float = SAT, max_regions: int = MAX_REGIONS,
+                    white_core: bool = True) -> list:
     """Connected regions of observed pixels with max channel ≥ ``sat`` in the EV-0 LDR
-    panorama ``ldr`` [H, W, 3] (mask [H, W], 1 = observed), largest seen power first."""
+    panorama ``ldr`` [H, W, 3] (mask [H, W], 1 = observed), largest seen power first.
+
+    ``white_core``: keep only regions with at least one pixel clipped in every channel. A
+    light's core saturates white; a region clipped in one channel only is a saturated
+    colour (a deep sky), or, in a reconstructed scene, a single sky texel at blue = 1. In the
+    demo's reconstruction six such specks beside the sun made the head read the scene as
+    many-lights and predict a sun gain of 4.8 instead of 57 (true ≈ 70)."""
     ldr, seen = _check(ldr, mask)
     h, w = seen.shape
     clipped = seen & (ldr.max(-1) >= sat)
     lab, n = label_equirect(clipped)
+    if n and white_core:
+        white = np.bincount(lab.ravel(), (clipped & (ldr.min(-1) >= sat)).ravel(), n + 1) > 0
+        keep = np.flatnonzero(white[1:]) + 1                        # labels with a white core
+        remap = np.zeros(n + 1, np.int64)
+        remap[keep] = np.arange(1, len(keep) + 1)
+        lab, n = remap[lab], len(keep)
     if n == 0:
         return []
     dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
