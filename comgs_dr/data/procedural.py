@@ -65,9 +65,11 @@ def scene_dataset_config(out_dir, n_train: int = 60, n_test: int = 12, resolutio
 
 
 def procedural_sky(path: Path, width: int = 256, sun_elevation_deg: float = 40.1,
-                   sun_azimuth_deg: float = 45.8) -> Path:
-    """Equirect HDR sky (Z-up, the dataset's orientation): gradient, ground, a bright sun of
-    3 degrees radius at the given elevation / azimuth (from +X towards +Y)."""
+                   sun_azimuth_deg: float = 45.8, sun_radius_deg: float = 3.0) -> Path:
+    """Equirect HDR sky (Z-up, the dataset's orientation): gradient, ground, a bright sun at
+    the given elevation / azimuth (from +X towards +Y). Its power does not depend on
+    ``sun_radius_deg`` (radiance 400 at 3 degrees, scaled by (3 / radius)²); the real sun's
+    radius is 0.27 degrees, below what a 256-px map resolves."""
     d = _directions(width)
     up = np.clip(d[..., 2], 0, 1)[..., None]
     sky = (1 - up) * np.array([0.9, 0.95, 1.1]) + up * np.array([0.25, 0.45, 1.0])
@@ -75,7 +77,9 @@ def procedural_sky(path: Path, width: int = 256, sun_elevation_deg: float = 40.1
     img = np.where(d[..., 2:3] > 0, sky, ground)
     el, az = np.radians(sun_elevation_deg), np.radians(sun_azimuth_deg)
     sun = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    img = img + 400.0 * (d @ sun > np.cos(np.radians(3.0)))[..., None] * np.array([1.0, 0.95, 0.85])
+    rad = 400.0 * (1 - np.cos(np.radians(3.0))) / (1 - np.cos(np.radians(sun_radius_deg)))
+    img = img + rad * (d @ sun > np.cos(np.radians(sun_radius_deg)))[..., None] \
+        * np.array([1.0, 0.95, 0.85])
     return write_exr(path, img.astype(np.float32), "equirect")
 
 
