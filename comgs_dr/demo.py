@@ -58,13 +58,13 @@ class DemoConfig:
     test_views: int = 4
     spp: int = 32
     sfm_points: int = 5000
-    scene_elevation_deg: tuple = (30.0, 70.0)   # (8, 60) sees the sky: measured worse (no sky surfels)
+    scene_elevation_deg: tuple = (30.0, 70.0)   # views looking down at the ground
     sky_views: int = 12                         # capture views over the horizon (sky and sun)
     sky_pitch_deg: tuple = (10.0, 40.0)
     scene_env_resolution: int = 128             # texels per side of step 1's sky
     sun_elevation_deg: float = 25.0
     sun_radius_deg: float = 3.0                 # 1.5 (same power) measured worse: 19.46 dB
-    scene_exposure: float = 0.6                 # the capture exposes for the sky (only the sun clips)
+    scene_exposure: float = 0.6                 # exposed for the sky: only the sun clips
     scene_background: str = "env"               # step 1 learns the sky behind the surfels
     scene_iterations: int = 800
     object_iterations: int = 800
@@ -89,7 +89,8 @@ class DemoConfig:
 
 PRESETS = {
     "default": DemoConfig(),
-    "tiny": DemoConfig(resolution=24, scene_views=8, sky_views=2, object_views=8, test_views=2, spp=4,
+    "tiny": DemoConfig(resolution=24, scene_views=8, sky_views=2, object_views=8, test_views=2,
+                       spp=4,
                        sfm_points=800, scene_iterations=30, object_iterations=30,
                        material_iterations=10, probes=200, shadow_probes=150, rays=16),
 }

@@ -9,7 +9,8 @@ analytically from the gathered parameters (:func:`eval_surfel`):
   to K ordered hits with α ≥ 1/255 per ray (the *hit buffer*; the origin
   advances by t + ε after each hit) and accumulate B in the same symbolic loop.
 * :func:`composite_adjoint` — reverse or forward mode over the stored hits,
-  without re-tracing. With S_i = Σ_{j>i} T_j α_j b_j (+ T_final·background, a grey or per-ray radiance)
+  without re-tracing. With S_i = Σ_{j>i} T_j α_j b_j (+ T_final·background, a grey level
+  or a per-ray radiance)
   = B − Σ_{j≤i} T_j α_j b_j, the derivative of B is
   dB = Σ_i [ T_i α_i db_i + dα_i (T_i b_i − S_i / (1 − α_i)) ],
   so each hit contributes the local surrogate y_i = T_i α_i b_i − α_i S_i/(1−α_i)
