@@ -124,3 +124,20 @@ def test_bad_background_settings():
         RadianceConfig(background="sky")
     with pytest.raises(ValueError, match="env_resolution"):
         RadianceConfig(env_resolution=2)
+
+
+def test_render_run_shows_the_learned_sky(sky_scene, trained):
+    """``comgs render`` of an env-background run renders the sky (its PSNR is the trainer's)
+    and keeps the EXR colour layer surfels-only (the sky removed)."""
+    from comgs_dr.core import exr
+    from comgs_dr.stages.render_run import render_run
+    from comgs_dr.train.run import write_run_info
+    run, s = trained
+    write_run_info(run, sky_scene / "scene", "scene", 1, False)
+    r = render_run(run, "test", progress=False, max_hits=16)
+    assert abs(r["psnr"] - s["psnr_test"]) < 0.5, (r["psnr"], s["psnr_test"])
+    layers = exr.read_layers(run / "render_test" / "000.exr")
+    rgba = np.asarray(layers[""] if "" in layers else next(iter(layers.values())))
+    assert np.isfinite(rgba).all()
+    a = rgba[..., 3]
+    assert np.all(rgba[..., :3][a < 1e-4] == 0)                   # no sky in the surfel layer

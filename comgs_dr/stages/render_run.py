@@ -12,12 +12,15 @@ import numpy as np
 from tqdm import tqdm
 
 from comgs_dr.core import exr
+from comgs_dr.core.cameras import camera_rays
 from comgs_dr.core.colorspace import srgb_decode
 from comgs_dr.data.images import write_png8
 from comgs_dr.data.nerf import split_frames
+from comgs_dr.emitters.octenvmap import emitter_class
 from comgs_dr.eval import metrics as M
 from comgs_dr.surfels import load_ply
 from comgs_dr.surfels.scene import gbuffer_scene
+from comgs_dr.train import background as bgenv
 from comgs_dr.train import checkpoint as ck
 from comgs_dr.train.run import load_run_dataset, read_run_info
 
@@ -50,6 +53,15 @@ GBUFFER_ATTRS = {"colour": "linear sRGB (Rec. 709 primaries), premultiplied by A
                  "normal": "unit world-space normal, 0 where uncovered"}
 
 
+def _sky_pixels(scene, i: int) -> np.ndarray:
+    """[H, W, 3] the scene's environment along the pixel-centre rays of sensor ``i``."""
+    sensor = scene.sensors()[i]
+    dirs, _ = camera_rays(sensor)
+    d = np.asarray(dirs, np.float32)
+    e = scene.environment().eval_world(mi.Vector3f(d.reshape(-1, 3).T.copy()))
+    return np.asarray(e).T.reshape(d.shape).astype(np.float64)
+
+
 def render_run(run_dir, views: str = "test", progress: bool = True, max_hits: int = 32) -> dict:
     """Render ``views`` ('test' or 'train'); write images and ``metrics_<views>.json``."""
     run_dir = Path(run_dir)
@@ -63,8 +75,11 @@ def render_run(run_dir, views: str = "test", progress: bool = True, max_hits: in
         raise ValueError(f"the dataset at {info['data']} has no {views} views")
     params = load_ply(str(ply))
     bg = 1.0 if data.white_background else 0.0
+    sky = bgenv.load(run_dir)                 # step 1's learned sky (``--background env``)
+    extra = {} if sky is None else dict(environment=emitter_class().from_radiance(sky[0]),
+                                        env_background=True)
     scene = gbuffer_scene({"surfels": params}, [v.camera.sensor_dict(**data.clip_planes()) for v in vs], max_hits=max_hits,
-                          background=bg)
+                          background=bg, **extra)
     integ = scene.integrator()
     gt_geo = _gt_geometry(Path(info["data"]), views) if info["resolution_scale"] == 1 else []
     out_dir = run_dir / f"render_{views}"
@@ -77,7 +92,8 @@ def render_run(run_dir, views: str = "test", progress: bool = True, max_hits: in
         write_png8(out_dir / f"{i:03d}_color.png", c)
         n_vis = (0.5 * b["normal"] + 0.5 * b["weight"]).clip(0, 1)
         write_png8(out_dir / f"{i:03d}_normal.png", n_vis)
-        exr.write_layers(out_dir / f"{i:03d}.exr", gbuffer_layers(b, bg), GBUFFER_ATTRS)
+        behind = bg if sky is None else _sky_pixels(scene, i)       # what T_final shows
+        exr.write_layers(out_dir / f"{i:03d}.exr", gbuffer_layers(b, behind), GBUFFER_ATTRS)
         rec = {"view": v.name, "psnr": M.psnr(c, v.image), "ssim": M.ssim(c, v.image)}
         if i < len(gt_geo):
             npath, dpath = gt_geo[i]
