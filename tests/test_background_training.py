@@ -26,8 +26,11 @@ SKY_VIEWS = 4
 def sky_scene(tmp_path_factory, variant):
     out = tmp_path_factory.mktemp("sky")
     sky = procedural.procedural_sky(out / "sky.exr", sun_elevation_deg=15.0)
+    studio = procedural.procedural_studio(out / "studio.exr")        # no shared data needed
+    mesh = procedural.procedural_object_yup(out / "torus.ply")
     cd.make_composition_dataset(cd.CompositionDatasetConfig(
-        out_dir=out / "ds", objects=("teapot",), scene_map=sky, resolution=24, scene_views=6,
+        out_dir=out / "ds", objects=(str(mesh),), scene_map=sky, object_map=studio,
+        resolution=24, scene_views=6,
         sky_views=SKY_VIEWS, object_views=1, test_views=2, spp=4, sfm_points=400),
         progress=False)
     return out / "ds"

@@ -230,3 +230,20 @@ def test_shipped_head_recovers_unseen_suns():
         err_seen.append(abs(np.log(seen / true)))
     print("median |log| error: head", np.median(err_head), "EV-0 pixels", np.median(err_seen))
     assert np.median(err_head) < np.log(1.6) and np.median(err_head) < 0.25 * np.median(err_seen)
+
+
+def test_blur_ldr_keeps_flat_regions_and_the_mask_and_softens_a_sun():
+    from comgs_dr.stages.train_light_head import blur_ldr
+    img, s = _sun_map()
+    ldr = expose(img, 0.0)
+    h, w = ldr.shape[:2]
+    mask = np.ones((h, w))
+    mask[:, : w // 4] = 0.0
+    ldr = np.where(mask[..., None] > 0.5, ldr, 0.0)
+    out = blur_ldr(ldr, mask, 2.0)
+    assert np.all(out[:, : w // 4] == 0) and np.isfinite(out).all()
+    flat = np.full((h, w, 3), 0.4)
+    assert np.allclose(blur_ldr(flat, mask, 2.0)[:, w // 4:], 0.4, atol=1e-9)  # no dark rim
+    white = lambda x: (x.min(-1) >= L.SAT).sum()                               # noqa: E731
+    clipped = lambda x: (x.max(-1) >= L.SAT).sum()                             # noqa: E731
+    assert white(out) / max(clipped(out), 1) <= white(ldr) / max(clipped(ldr), 1)

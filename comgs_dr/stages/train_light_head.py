@@ -63,6 +63,8 @@ class TrainLightHeadConfig:
     aug_ev: float = 1.5
     wb_jitter: float = 0.1
     full_view: float = 0.15       # fraction of draws with the whole sphere observed
+    blur_frac: float = 0.4        # fraction of draws whose LDR panorama is blurred ...
+    blur_deg: tuple = (0.5, 3.0)  # ... by a Gaussian of this σ range (degrees of arc)
     steps: int = 1000
     lr: float = 3e-3
     hidden: int = 64
@@ -88,6 +90,8 @@ def _draws(rng, hdr, masks, n, cfg, label, group, feats, targets, groups):
             rep = h // a.shape[0]
             a = P.rotate_u(np.repeat(np.repeat(a, rep, 0), rep, 1), rng.integers(w))
         ldr = np.where(a[..., None] > 0.5, expose(m, 0.0), 0.0)
+        if rng.random() < cfg.blur_frac:
+            ldr = blur_ldr(ldr, a, rng.uniform(*cfg.blur_deg) * h / 180.0)
         lab = label if rng.random() > 0.2 else C.LABELS["unknown"]
         regions = L.clipped_regions(ldr, a)
         if not regions:
@@ -99,6 +103,20 @@ def _draws(rng, hdr, masks, n, cfg, label, group, feats, targets, groups):
             seen = max(float(r.seen_power @ LUMA), 1e-12)
             targets.append(np.log(max(true / seen, 1.0)))
             groups.append(group)
+
+
+def blur_ldr(ldr, alpha, sigma_px: float) -> np.ndarray:
+    """The EV-0 LDR panorama as a reconstruction holds it: a sky learned from LDR images at
+    the reconstruction's resolution is their clipped display values, averaged (the demo's
+    6° sun reached the trace as a soft blob with a white core 20–60 % of its clipped area;
+    the unblurred training suns were all white). Mask-normalised Gaussian (σ in pixels,
+    wrapping in u), zero outside the mask."""
+    from scipy.ndimage import gaussian_filter
+    a = (alpha > 0.5).astype(np.float64)
+    mode = ("nearest", "wrap")
+    num = np.stack([gaussian_filter(ldr[..., c] * a, sigma_px, mode=mode) for c in range(3)], -1)
+    den = gaussian_filter(a, sigma_px, mode=mode)[..., None]
+    return np.where(a[..., None] > 0, num / np.maximum(den, 1e-6), 0.0)
 
 
 def build_data(cfg: TrainLightHeadConfig, progress: bool = True) -> dict:
@@ -232,6 +250,8 @@ def add_arguments(ap) -> None:
     ap.add_argument("--rooms", type=int, default=d.n_rooms)
     ap.add_argument("--masks", type=int, default=d.n_masks)
     ap.add_argument("--steps", type=int, default=d.steps)
+    ap.add_argument("--blur-frac", type=float, default=d.blur_frac,
+                    help="fraction of draws blurred as a reconstruction's sky (0: none)")
     ap.add_argument("--weight-decay", type=float, default=d.weight_decay)
     ap.add_argument("--no-cv", action="store_true", help="skip the cross-validation")
     ap.add_argument("--seed", type=int, default=d.seed)
@@ -247,7 +267,7 @@ def run_from_args(args) -> int:
                                draws_real=args.draws, n_sky=args.skies, n_rooms=args.rooms,
                                n_masks=args.masks, steps=args.steps, seed=args.seed,
                                weight_decay=args.weight_decay, cv=not args.no_cv,
-                               threads=args.threads)
+                               threads=args.threads, blur_frac=args.blur_frac)
     info = train(cfg, progress=not args.quiet, command=" ".join(sys.argv))
     print(f"saved {cfg.out}: {info['regions']} regions, training MAE of log gain "
           f"{info['history'][-1]['train_mae_log']}")
