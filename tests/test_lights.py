@@ -168,7 +168,7 @@ def test_training_targets_are_the_true_power_ratio():
     """_draws: a full view of a map with a 5e4 sun gives target log(P_true / P_seen)."""
     from comgs_dr.stages.train_light_head import TrainLightHeadConfig, _draws
     img, s = _sun_map(radiance=5e4)
-    cfg = TrainLightHeadConfig(aug_ev=0.0, wb_jitter=0.0, full_view=1.0)
+    cfg = TrainLightHeadConfig(aug_ev=0.0, wb_jitter=0.0, full_view=1.0, blur_frac=0.0)
     feats, targets, groups = [], [], []
     _draws(np.random.default_rng(0), img, np.ones((1, 64, 128)), 3, cfg, 0, 7, feats, targets,
            groups)
