@@ -144,3 +144,17 @@ def test_render_run_shows_the_learned_sky(sky_scene, trained):
     assert np.isfinite(rgba).all()
     a = rgba[..., 3]
     assert np.all(rgba[..., :3][a < 1e-4] == 0)                   # no sky in the surfel layer
+
+
+def test_cli_make_dataset_with_sky_views(sky_scene, tmp_path):
+    from comgs_dr import cli
+    src = sky_scene.parent
+    code = cli.main(["make-dataset", "composition", "--out", str(tmp_path / "d"), "--objects",
+                     str(src / "torus.ply"), "--scene-map", str(src / "sky.exr"), "--object-map",
+                     str(src / "studio.exr"), "--res", "16", "--scene-views", "3",
+                     "--object-views", "2", "--test-views", "1", "--sky-views", "2",
+                     "--ground-half", "6", "--quiet"])
+    assert code == 0
+    comp = json.loads((tmp_path / "d" / "composition.json").read_text())
+    assert comp["scene"]["n_train"] == 5 and comp["scene"]["sky_views"] == 2
+    assert comp["scene"]["shapes"]["ground"]["half_size"] == 6.0
