@@ -375,3 +375,53 @@ def test_compose_cache_recomputes_only_what_a_moved_object_touches(tmp_path):
     with pytest.raises(ValueError, match="no placement for \\['b'\\]"):
         compose(run, objs, tmp_path / "one.json", out, env=tmp_path / "env.exr", cfg=cfg,
                 progress=False)
+
+
+def test_composition_shows_the_scene_runs_learned_sky(tmp_path):
+    """A scene run with step 1's sky (background.exr): compose records it, and every
+    variant draws it where nothing covers a pixel (decoded to linear); the covered pixels
+    are unchanged."""
+    from comgs_dr.core.cameras import camera_rays
+    from comgs_dr.core.colorspace import srgb_decode
+    from comgs_dr.stages.compose import ComposeConfig, compose
+    from comgs_dr.stages.render_comp import load_comp_scene
+    from comgs_dr.train import background as bgenv
+    from comgs_dr.train.run import write_run_info
+    data = _nerf_folder(tmp_path / "data")
+    run = tmp_path / "scene_run"
+    write_run_info(run, data, "scene", 1, False)
+    save_ply(plane(n=30), str(run / "point_cloud.ply"))
+    d = tmp_path / "obj"
+    d.mkdir()
+    p = ball((0, 0, 0), 0.3, (0.8, 0.2, 0.2), n=600)
+    save_ply(p, str(d / "point_cloud.ply"))
+    _probes_for(p, count=60).save(d / "probes.npz")
+    em.write_exr(tmp_path / "env.exr", sun_map(32), "octahedral")
+    write_placements(tmp_path / "t.json", {"obj": Similarity(1.0, np.eye(3), np.array([0, 0, 0.3]))})
+    cfg = ComposeConfig(shadow=occ.ShadowConfig(count=100, res=8, supersample=1),
+                        scene_views=4, min_consistent=1)
+    out = tmp_path / "comp"
+    compose(run, {"obj": d}, tmp_path / "t.json", out, env=tmp_path / "env.exr", cfg=cfg,
+            progress=False)                                       # before the sky exists
+    sensor = perspective([0.0, -4.0, 1.0], target=[0.0, 0.0, 0.8], res=16, fov=60)
+    plain = np.array(mi.render(load_comp_scene(out, "paste", sensors=[sensor])))
+    dirs = octa.texel_directions_np(16).reshape(16, 16, 3)
+    sky = np.clip(0.5 + 0.4 * dirs[..., 2:3], 0, 1) * [0.6, 0.7, 0.9]      # display values
+    bgenv.save(run, sky, np.ones((16, 16)))
+    compose(run, {"obj": d}, tmp_path / "t.json", out, env=tmp_path / "env.exr", cfg=cfg,
+            progress=False)
+    assert json.loads((out / "composition.json").read_text())["scene"]["sky"].endswith(
+        "background.exr")
+    for variant in ("paste", "sop"):
+        img = np.array(mi.render(load_comp_scene(out, variant, sensors=[sensor])))
+        ref = plain if variant == "paste" else \
+            np.array(mi.render(load_comp_scene(out, variant, sensors=[sensor], sky="")))
+        empty = ref.sum(-1) == 0                                   # nothing covers these
+        assert empty.sum() > 20
+        sc = load_comp_scene(out, variant, sensors=[sensor])
+        dirs_px, _ = camera_rays(sc.sensors()[0], 16, 16)
+        up = np.asarray(dirs_px)[..., 2:3]
+        expect = srgb_decode(np.clip(0.5 + 0.4 * up, 0, 1) * [0.6, 0.7, 0.9])
+        assert np.allclose(img[empty], expect[empty], atol=0.03)
+        full = ref.sum(-1) > 0
+        assert np.abs(img[full] - ref[full]).max() < 0.6         # covered pixels barely move

@@ -98,6 +98,8 @@ def integrator_props(comp_dir, manifest: dict, variant: str = "sop",
     root = Path(comp_dir).resolve()
     props = {"type": "comgs_composite", "variant": variant, "scene_shape": "scene",
              "colour_space": manifest["scene"].get("colour_space", "srgb")}
+    if manifest["scene"].get("sky"):                 # step 1's learned sky (--background env)
+        props["sky"] = str(manifest["scene"]["sky"])
     if variant == "sop":
         props["shadow_probes"] = str(root / manifest["shadow_probes"])
     for name, o in manifest["objects"].items():

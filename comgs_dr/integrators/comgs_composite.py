@@ -25,6 +25,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core import colorspace
+from comgs_dr.core.cameras import camera_rays
 from comgs_dr.core.variant import AttachedRender, mitsuba_ad_base, variant_class
 from comgs_dr.emitters.octenvmap import emitter_class, is_octenvmap
 from comgs_dr.shading.shade import SAMPLINGS, ShadingConfig, ShadingPoints, shade
@@ -96,6 +97,11 @@ class CompositeBase(AttachedRender):
      * - colour_space
        - |string|
        - Space of the radiance fields' colour (Default: srgb)
+     * - sky
+       - |string|
+       - Step 1's learned background of the scene (``background.exr``, octahedral, in the
+         radiance field's colour space), shown where nothing covers a pixel
+         (Default: none: black; an empty string turns a recorded sky off)
 
     Output: linear RGB (RGBA with an alpha film: alpha = total coverage).
     """
@@ -133,6 +139,7 @@ class CompositeBase(AttachedRender):
         if self.colour_space not in ("srgb", "linear"):
             raise ValueError(f"comgs_composite: colour_space must be srgb or linear, got "
                              f"{self.colour_space!r}")
+        self.sky_path = (str(props["sky"]) or None) if "sky" in props else None   # "": off
         self._state = None
         self._geo = {}
 
@@ -182,6 +189,10 @@ class CompositeBase(AttachedRender):
                                            pr.res, self.probe_k)
             st["objects"].append(obj)
         st["groups"] = groups
+        if self.sky_path is not None:
+            props = mi.Properties("octenvmap")
+            props["filename"] = self.sky_path
+            st["sky"] = emitter_class()(props)
         if self.variant == "sop":
             sp = ProbeSet.load(self.shadow_path)
             if sp.texture is None:
@@ -293,6 +304,11 @@ class CompositeBase(AttachedRender):
             layer = dr.zeros(mi.Color3f, h * w)
             dr.scatter(layer, dr.gather(mi.Float, Wg, pix) * c, pix)
             img = img + layer
+        if "sky" in st:                            # T_final · sky, as step 1 rendered it
+            cover = dr.clip(sum(buf.weight[1:], Ws), 0.0, 1.0)
+            dirs, _ = camera_rays(sensor, w, h)
+            sky = st["sky"].eval_world(mi.Vector3f(dr.unravel(mi.Vector3f, dirs.array)))
+            img = img + (1.0 - cover) * self._linear(dr.clip(sky, 0.0, 1.0), mi.Float(1.0))
         if sensor.film().base_channels_count() == 4:
             cover = dr.clip(sum(buf.weight[1:], Ws), 0.0, 1.0)
             return mi.TensorXf(dr.ravel(mi.Vector4f(img.x, img.y, img.z, cover)), shape=(h, w, 4))

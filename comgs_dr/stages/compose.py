@@ -267,7 +267,9 @@ def compose(scene_run, objects: dict, placement, out, env=None, estimator=None,
     manifest = {
         "version": comp_folder.FORMAT_VERSION,
         "scene": {"run": str(scene_run.resolve()), "ply": str(scene_ply.resolve()),
-                  "colour_space": scene_meta.color_space or "srgb"},
+                  "colour_space": scene_meta.color_space or "srgb",
+                  **({"sky": str((scene_run / "background.exr").resolve())}
+                     if (scene_run / "background.exr").is_file() else {})},
         "world_from_source": W.tolist(),
         "objects": {n: {"run": str(Path(objects[n]).resolve()), "ply": str(files[n]["ply"].resolve()),
                         "placement": sims[n].matrix.tolist(), "envmap": f"env/{n}.exr",
