@@ -10,6 +10,11 @@ light head (``lighting.lights``: the brackets alone stop at 32× the white level
 converted to an octahedral texture (``lighting.envmap.equirect_to_oct_np``) for relighting and
 shadows. We also extract the dominant lights (``hdr.extract_lights``).
 
+When the scene's step-1 run learned a sky behind its surfels (``--background env``,
+``train.background``), ``EstimateConfig.background`` ("auto": beside the PLY) composites it into
+the trace where the surfels leave the view open and the capture saw the sky
+(``panorama.composite_background``), before completion.
+
 Input of the backend: the trace's EV-0 display values ``ldr`` clipped to [0, 1] for a
 radiance field fitted in sRGB (the usual case), or ``expose(rgb, 0)`` for a linear one,
 with ``alpha`` as the mask and ``normal``.
