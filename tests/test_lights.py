@@ -146,8 +146,21 @@ def test_add_lights_restores_the_predicted_power():
     total = float(((out @ LUMA) * dw).sum())
     assert total == pytest.approx(float(((img @ LUMA) * dw).sum()), rel=1e-4)
     assert added[0]["direction"] @ s > np.cos(np.radians(2.0))
-    out2, added2 = L.add_lights(out, [{**lobes[0], "luminance_power": 0.5 * true_p}])
-    assert added2 == [] and np.array_equal(out2, out)         # never removes light
+    half = {**lobes[0], "luminance_power": 0.5 * true_p}
+    out2, added2 = L.add_lights(out, [half], excess="keep")
+    assert added2 == [] and np.array_equal(out2, out)         # "keep" never removes light
+    # "match": the excess over the white level inside the region is scaled to the head's power
+    out3, added3 = L.add_lights(out, [half])
+    reg = lobes[0]["region"]
+    assert added3 == []
+    assert float(((out3 @ LUMA) * dw)[reg].sum()) == pytest.approx(0.5 * true_p, rel=1e-6)
+    assert np.array_equal(out3[~reg], out[~reg])              # nothing outside the region
+    assert (out3[reg] >= np.minimum(out[reg], 1.0) - 1e-12).all()   # never below white
+    # a target below what the white level alone holds: the region stays at the white level
+    out4, _ = L.add_lights(out, [{**lobes[0], "luminance_power": 1e-9}])
+    assert np.allclose(out4[reg], np.minimum(out[reg], 1.0))
+    with pytest.raises(ValueError, match="excess"):
+        L.add_lights(out, [half], excess="drop")
 
 
 def test_head_weights_round_trip_and_errors(tmp_path):

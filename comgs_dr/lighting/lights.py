@@ -297,10 +297,32 @@ def predict_lobes(ldr, mask, head: LightHead, label: int = 2, sat: float = SAT,
     return out
 
 
-def add_lights(hdr_map, lobes, shape: str = "sg_region",
-               sharpen: float = 1.0) -> tuple[np.ndarray, list[dict]]:
+def _match_excess(out, reg, lum, dw, target: float) -> float:
+    """Scale, inside ``reg``, the part of ``out`` above the EV-0 white level (1 per channel:
+    what the completion's EV < 0 brackets added to the clipped pixels) so the region's
+    luminance power falls to ``target``; never below the white level. In place; returns
+    the region's power afterwards."""
+    have = float((lum * dw * reg).sum())
+    floor = np.minimum(out[reg], 1.0)                                         # [P, 3]
+    base = float(((floor @ LUMA) * dw[reg]).sum())
+    if have <= target or have <= base:
+        return have
+    k = max(target - base, 0.0) / (have - base)
+    out[reg] = floor + k * (out[reg] - floor)
+    return max(target, base)
+
+
+def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
+               excess: str = "match") -> tuple[np.ndarray, list[dict]]:
     """The fused map [H, W, 3] plus each lobe's missing power: P_pred − (the map's luminance
-    power inside the lobe's region), ≥ 0, coloured by the lobe's ``colour``, drawn as
+    power inside the lobe's region), ≥ 0, coloured by the lobe's ``colour``.
+
+    ``excess``: where the map already holds more than P_pred inside the region (a completion
+    net's EV −2.5/−5 brackets re-predict clipped pixels), ``"match"`` scales that excess over
+    the EV-0 white level down to P_pred (the head's power is the region's power: measured on
+    the held-out maps, the net put a clipped window at 1.7–2.3× its true power and 2–3× the
+    head's, so the window outshone the ceiling lamps the head had restored); ``"keep"``
+    leaves it (the map's light is never removed). The missing power is drawn as
 
     * ``shape="sg"``: an SG at the region's centroid with the region's solid angle;
     * ``shape="region"``: inside the region's pixels, with weights ∝ (the fused map's
@@ -312,6 +334,8 @@ def add_lights(hdr_map, lobes, shape: str = "sg_region",
     if shape not in ("sg", "region", "sg_region"):
         raise ValueError(f"add_lights: shape must be 'sg', 'region' or 'sg_region', got "
                          f"{shape!r}")
+    if excess not in ("match", "keep"):
+        raise ValueError(f"add_lights: excess must be 'match' or 'keep', got {excess!r}")
     img = np.asarray(hdr_map, np.float64)
     if img.ndim != 3 or img.shape[-1] != 3 or not np.isfinite(img).all():
         raise ValueError(f"add_lights: need a finite [H, W, 3] map, got {img.shape}")
@@ -322,7 +346,11 @@ def add_lights(hdr_map, lobes, shape: str = "sg_region",
     added, sg_lobes = [], []
     for lb in lobes:
         reg = np.asarray(lb["region"], bool)
-        have = float((lum * dw * reg).sum())
+        if excess == "match":
+            have = _match_excess(out, reg, lum, dw, float(lb["luminance_power"]))
+            lum = out @ LUMA
+        else:
+            have = float((lum * dw * reg).sum())
         missing = max(lb["luminance_power"] - have, 0.0)
         if missing <= 0:
             continue
