@@ -23,16 +23,23 @@ cannot:
   true powers (``stages.train_light_head``). An MLP on hand-made features, not a CNN: the
   quantity is one number per region, the training set is a few thousand regions, and it must
   generalise from 8 real maps plus procedural skies.
-* ``add_lights``: the fused HDR map plus, per clipped region, the *missing* power
-  (predicted power − the fused map's power there), coloured like the unclipped ring around
-  the region (the sun's glow; white where no ring pixel is seen). By default it is drawn
-  inside the region's pixels with weights ∝ (fused luminance) × the region's SG lobe (centred
-  on the region, the region's solid angle). Measured on the 5 held-out maps (64×128, 39
-  samples, ``lighting_eval`` metrics): si-RMSE 0.954 / RGB angular 5.36° / dominant-light
-  angle (light visible) 35.7°, against 0.976 / 5.52° / 37.9° for the bare SG lobe (it spills
-  the ring colour outside the region) and 0.941 / 5.36° / 48.2° for the region without the
-  lobe (a wide clipped sky patch then reads as a weak, flat light). The lobes' parameters
-  are returned (``env.json``).
+* ``add_lights``: the fused HDR map with, per clipped region, the predicted power: where the
+  completion's EV < 0 brackets already put more there, their excess over the EV-0 white
+  level is scaled down to it (``excess="match"``: on the held-out maps the net had made a
+  clipped window 2–3× brighter than the head's prediction and outshone the ceiling lamps;
+  dominant-light angle with the light visible 41.3° → 18.4°, si-RMSE 1.234 → 1.226 at
+  128×256, ``lighting_eval --held-out --masks 8``); where it holds less, the *missing*
+  power (predicted power − the fused map's power there) is added, coloured like the
+  unclipped ring around the region (the sun's glow; white where no ring pixel is seen),
+  drawn inside the region's pixels with weights ∝ (fused luminance) × the region's SG lobe
+  (centred on the region, the region's solid angle). Measured on the 5 held-out maps
+  (64×128, 39 samples, ``lighting_eval`` metrics, before "match"): si-RMSE 0.954 / RGB
+  angular 5.36° / dominant-light angle (light visible) 35.7°, against 0.976 / 5.52° / 37.9°
+  for the bare SG lobe (it spills the ring colour outside the region) and 0.941 / 5.36° /
+  48.2° for the region without the lobe (a wide clipped sky patch then reads as a weak,
+  flat light). With "match" the region without the lobe was better on the held-out maps
+  (17.3° vs 18.4°) but worse on the training maps (16.0° vs 13.2°), so the lobe stays. The
+  lobes' parameters are returned (``env.json``).
 """
 from __future__ import annotations
 
