@@ -26,7 +26,7 @@ cannot:
 * ``add_lights``: the fused HDR map with, per clipped region, the predicted power: where the
   completion's EV < 0 brackets already put more there, their excess over the EV-0 white
   level is scaled down to it (``excess="match"``: on the held-out maps the net had made a
-  clipped window 2–3× brighter than the head's prediction and outshone the ceiling lamps;
+  clipped window 2.3× brighter than the head's prediction and outshone the ceiling lamps;
   dominant-light angle with the light visible 41.3° → 18.4°, si-RMSE 1.234 → 1.226 at
   128×256, ``lighting_eval --held-out --masks 8``); where it holds less, the *missing*
   power (predicted power − the fused map's power there) is added, coloured like the
@@ -327,7 +327,7 @@ def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
     ``excess``: where the map already holds more than P_pred inside the region (a completion
     net's EV −2.5/−5 brackets re-predict clipped pixels), ``"match"`` scales that excess over
     the EV-0 white level down to P_pred (the head's power is the region's power: measured on
-    the held-out maps, the net put a clipped window at 1.7–2.3× its true power and 2–3× the
+    the held-out maps, the net put a clipped window at 1.7–1.8× its true power and 2.3× the
     head's, so the window outshone the ceiling lamps the head had restored); ``"keep"``
     leaves it (the map's light is never removed). The missing power is drawn as
 
