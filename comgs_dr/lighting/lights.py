@@ -307,8 +307,8 @@ def predict_lobes(ldr, mask, head: LightHead, label: int = 2, sat: float = SAT,
 def _match_excess(out, reg, lum, dw, target: float) -> float:
     """Scale, inside ``reg``, the part of ``out`` above the EV-0 white level (1 per channel:
     what the completion's EV < 0 brackets added to the clipped pixels) so the region's
-    luminance power falls to ``target``; never below the white level. In place; returns
-    the region's power afterwards."""
+    luminance power falls to ``target``; never below the white level. ``out`` and its
+    luminance ``lum`` are updated in place; returns the region's power afterwards."""
     have = float((lum * dw * reg).sum())
     floor = np.minimum(out[reg], 1.0)                                         # [P, 3]
     base = float(((floor @ LUMA) * dw[reg]).sum())
@@ -316,6 +316,7 @@ def _match_excess(out, reg, lum, dw, target: float) -> float:
         return have
     k = max(target - base, 0.0) / (have - base)
     out[reg] = floor + k * (out[reg] - floor)
+    lum[reg] = out[reg] @ LUMA
     return max(target, base)
 
 
@@ -355,7 +356,6 @@ def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
         reg = np.asarray(lb["region"], bool)
         if excess == "match":
             have = _match_excess(out, reg, lum, dw, float(lb["luminance_power"]))
-            lum = out @ LUMA
         else:
             have = float((lum * dw * reg).sum())
         missing = max(lb["luminance_power"] - have, 0.0)
