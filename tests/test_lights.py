@@ -193,6 +193,19 @@ def test_training_targets_are_the_true_power_ratio():
     assert max(targets) == pytest.approx(np.log(sun / seen), rel=0.05)
 
 
+def test_room_resize_round_trip_and_bad_sizes():
+    from comgs_dr.stages.train_light_head import _resize_rows
+    img = np.random.default_rng(0).random((16, 32, 3))
+    up = _resize_rows(img, 64)
+    assert up.shape == (64, 128, 3)
+    np.testing.assert_allclose(_resize_rows(up, 16), img, rtol=1e-12)
+    dw16, dw8 = _dw(16, 32), _dw(8, 16)
+    np.testing.assert_allclose((_resize_rows(img, 8) * dw8[..., None]).sum((0, 1)),
+                               (img * dw16[..., None]).sum((0, 1)), rtol=1e-9)   # power kept
+    with pytest.raises(ValueError):
+        _resize_rows(img, 24)
+
+
 def test_train_light_head_tiny_run(tmp_path):
     from comgs_dr.lighting.envmap import write_exr
     from comgs_dr.stages.train_light_head import TrainLightHeadConfig, train

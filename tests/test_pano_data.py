@@ -93,6 +93,26 @@ def test_room_panorama_is_lit_by_emitters():
     assert lum.max() > 5 * np.median(lum) > 0
 
 
+def test_room_bulbs_are_small_bright_and_inside_the_room():
+    from comgs_dr.lighting.pano_data import _room_dict
+    n_bulbs = 0
+    for seed in range(12):
+        assert not any(k.startswith("bulb") for k in _room_dict(np.random.default_rng(seed))[0])
+        d, _, _ = _room_dict(np.random.default_rng(seed), bulbs=True)
+        half = np.array([d["floor"]["to_world"].matrix[0, 0], d["floor"]["to_world"].matrix[1, 1]])
+        top = d["ceiling"]["to_world"].matrix[2, 3]
+        for k, b in d.items():
+            if not k.startswith("bulb"):
+                continue
+            n_bulbs += 1
+            c = np.array(b["center"])
+            assert 0.02 <= b["radius"] <= 0.08
+            assert (np.abs(c[:2]) + b["radius"] < half).all() and b["radius"] < c[2] < top
+            rad = np.array(b["emitter"]["radiance"]["value"])
+            assert rad.max() == pytest.approx(rad[0]) and 10 ** 2.5 <= rad[0] <= 10 ** 4.5
+    assert 3 <= n_bulbs <= 40                       # about half the rooms, 1-4 bulbs each
+
+
 def test_mask_bank_masks_and_normals():
     masks = pano_masks.mask_bank(4, 16, 32, seed=2, n_surfels=4000, points_per_scene=2)
     assert len(masks) == 4

@@ -189,8 +189,9 @@ def interior_colour(rng: np.random.Generator, lo: float, hi: float, warm: float 
     return np.clip(np.array(colorsys.hsv_to_rgb(hue, sat, rng.uniform(lo, hi))), 0.02, 0.95)
 
 
-def _room_dict(rng) -> tuple[dict, np.ndarray, np.ndarray]:
-    """Mitsuba scene dict of a procedural room, and the box to pick the viewpoint in."""
+def _room_dict(rng, bulbs: bool = False) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Mitsuba scene dict of a procedural room, and the box to pick the viewpoint in.
+    ``bulbs``: half of the rooms also get 1–4 bare bulbs (see ``room_panorama``)."""
     T = mi.ScalarTransform4f
     sx, sy, sz = rng.uniform(3, 9), rng.uniform(3, 9), rng.uniform(2.3, 4.0)
 
@@ -238,6 +239,21 @@ def _room_dict(rng) -> tuple[dict, np.ndarray, np.ndarray]:
         d[f"lamp{i}"] = {"type": "rectangle", "to_world": T().translate(pos) @ T().rotate(
             [1, 0, 0], 180) @ T().scale([s[0], s[1], 1]), "emitter": {"type": "area", "radiance": {
                 "type": "rgb", "value": (warm * 10 ** rng.uniform(1.0, 2.5)).tolist()}}}
+    if bulbs and rng.random() < 0.5:       # bare bulbs: pendants below the ceiling, sconces
+        for i in range(int(rng.integers(1, 5))):
+            r = rng.uniform(0.02, 0.08)
+            if rng.random() < 0.5:
+                c = [rng.uniform(-sx / 3, sx / 3), rng.uniform(-sy / 3, sy / 3),
+                     sz - rng.uniform(0.2, 0.9)]
+            else:
+                k = int(rng.integers(4))
+                along = rng.uniform(-0.4, 0.4) * (sy if k < 2 else sx)
+                c = ([(1 if k == 0 else -1) * (sx / 2 - 0.12), along] if k < 2
+                     else [along, (1 if k == 2 else -1) * (sy / 2 - 0.12)]) + [rng.uniform(1.5, 2.2)]
+            warm = np.array([1.0, rng.uniform(0.7, 0.95), rng.uniform(0.4, 0.85)])
+            d[f"bulb{i}"] = {"type": "sphere", "center": [float(v) for v in c], "radius": r,
+                             "emitter": {"type": "area", "radiance": {
+                                 "type": "rgb", "value": (warm * 10 ** rng.uniform(2.5, 4.5)).tolist()}}}
     for i in range(int(rng.integers(2, 9))):                      # furniture
         x, y = rng.uniform(-sx / 2 + 0.4, sx / 2 - 0.4), rng.uniform(-sy / 2 + 0.4, sy / 2 - 0.4)
         col = rng.uniform(0.05, 0.8, 3)
@@ -254,12 +270,15 @@ def _room_dict(rng) -> tuple[dict, np.ndarray, np.ndarray]:
 
 
 def room_panorama(rng: np.random.Generator, h: int = 64, w: int = 128, spp: int = 32,
-                  seed: int = 0) -> np.ndarray:
+                  seed: int = 0, bulbs: bool = False) -> np.ndarray:
     """An indoor HDR panorama [h, w, 3] path traced (Mitsuba ``path``, 5 bounces) from a point
     in a procedural room (random size and wall colours, 0–4 windows, 0–3 ceiling lamps, boxes
-    and balls). Each pixel averages ``spp`` stratified-jittered rays over its footprint."""
+    and balls). Each pixel averages ``spp`` stratified-jittered rays over its footprint.
+    ``bulbs``: half of the rooms also get 1–4 bare bulbs (spheres of 2–8 cm radius below the
+    ceiling or on the walls, radiance 10^2.5–10^4.5, 10–100× the panels'): the real interiors'
+    small lamps are 100–250× their clipped EV-0 power, the panels only up to ~30×."""
 
-    d, lo, hi = _room_dict(rng)
+    d, lo, hi = _room_dict(rng, bulbs)
     scene = mi.load_dict(d)
     s = max(1, int(round(np.sqrt(spp))))
     dirs = pixel_directions(w, h, 0, w * h, s, rng).astype(np.float32)        # [h*w*s*s, 3]
