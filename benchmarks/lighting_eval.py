@@ -21,9 +21,11 @@ traced from procedural surfel scenes), with a random rotation about Z:
 
 Methods: ``net`` (the completion net; observed lights re-pasted as the paper re-adds them,
 ``completion.blend_observed``), ``net+lights`` (plus the light head's lobes for lights clipped
-at EV 0, ``lighting.lights``), the fills ``mean``, ``push_pull``, ``sh`` (the baselines),
-``push_pull+lights`` (ablation: the head on a baseline fill) and ``diffusers`` when
-``--diffusers DIR`` names a local model. "Ours" is ``net+lights`` when a head is found.
+at EV 0, ``lighting.lights``), ``net+sh`` / ``net+sh+lights`` (the net's hole averaged with
+the SH fill, ``backends.BlendBackend``: what ``estimate-light`` uses), the fills ``mean``,
+``push_pull``, ``sh`` (the baselines), ``push_pull+lights`` (ablation: the head on a baseline
+fill) and ``diffusers`` when ``--diffusers DIR`` names a local model. "Ours" is
+``net+sh+lights`` when a head is found.
 
 Per sample, besides the sphere metrics: ``light_angle_deg``, the angle between the dominant
 lights (``hdr.extract_lights``, k = 1) of the estimate and of the truth; ``light_in_hole``,
@@ -143,6 +145,10 @@ def make_methods(weights, head_path=None, diffusers=None) -> tuple[dict, object]
         methods["net"] = (net, False)
         if head is not None:
             methods["net+lights"] = (net, True)
+        blend = backends.BlendBackend([net, backends.FillBackend("sh")])
+        methods["net+sh"] = (blend, False)
+        if head is not None:
+            methods["net+sh+lights"] = (blend, True)
     else:
         print("no --weights and no shipped weights: evaluating the baselines only")
     for kind in BASELINES[:3]:
@@ -158,7 +164,11 @@ def make_methods(weights, head_path=None, diffusers=None) -> tuple[dict, object]
 
 
 def ours(methods) -> str | None:
-    return "net+lights" if "net+lights" in methods else "net" if "net" in methods else None
+    """The default pipeline of ``estimate-light`` where it was evaluated."""
+    for name in ("net+sh+lights", "net+sh", "net+lights", "net"):
+        if name in methods:
+            return name
+    return None
 
 
 def light_metrics(est, gt, alpha, obj_est, obj_gt, obj_mask) -> dict:

@@ -129,8 +129,10 @@ def main(argv=None):
         if sun and sun[0]["direction"][2] > np.sin(np.radians(8)):
             cases.append((f"sunsky_{len(cases) - len(maps)}", sky))
     methods = {"net": ("net", "none"), "net+lights": ("net", a.light_head),
+               "net+sh+lights": ("net+sh", a.light_head),
                "push_pull": ("push_pull", "none"), "push_pull+lights": ("push_pull", a.light_head)}
     be = {"net": backends.load_network_backend(), "push_pull": backends.FillBackend("push_pull")}
+    be["net+sh"] = backends.BlendBackend([be["net"], backends.FillBackend("sh")])
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; trace {2 * a.res}x{a.res}, "
           f"dome {2 * a.dome_res}x{a.dome_res}, sky seen: ±{a.wedge / 2:g}° around the sun up "
           f"to {a.max_elev:g}°\n")

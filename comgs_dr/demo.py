@@ -197,7 +197,7 @@ def run_demo(cfg: DemoConfig) -> dict:
             eval_every=max(cfg.material_iterations // 6, 1), eval_views=4), progress=prog)
 
     estimated = {}
-    backend = backends.load_network_backend()
+    backend = backends.default_backend()
     scene_ply = str(scene_run / "point_cloud.ply")
 
     def estimator(pos):

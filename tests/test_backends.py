@@ -247,3 +247,51 @@ def test_diffusers_missing_package(monkeypatch):
     monkeypatch.setattr(builtins, "__import__", fake)
     with pytest.raises(ImportError, match="pip install diffusers"):
         backends._import_diffusers()
+
+
+def _pano(h=16, w=32, seed=0):
+    rng = np.random.default_rng(seed)
+    rgb = rng.uniform(0.05, 1.0, (h, w, 3)).astype(np.float32)
+    rgb[2:4, 5:7] = 1.0                                                  # a clipped light
+    mask = np.ones((h, w), np.float32)
+    mask[8:, 10:25] = 0.0                                                # the hole
+    return rgb, np.zeros_like(rgb), mask
+
+
+class _Bright(backends.FillBackend):
+    """A fill whose EV < 0 brackets hold 8x the EV-0 fill (radiance a fill cannot have)."""
+
+    def complete(self, rgb, normal, mask, evs=completion.DEFAULT_EVS, label=2):
+        out = super().complete(rgb, normal, mask, evs, label)
+        rad = hdr.unexpose(out[0.0], 0.0) * 8.0
+        return {e: (v if e == 0.0 else hdr.expose(rad, e).astype(np.float32))
+                for e, v in out.items()}
+
+
+def test_blend_backend_keeps_the_first_where_seen_and_averages_radiance_in_the_hole():
+    rgb, normal, mask = _pano()
+    a, b = _Bright("push_pull"), backends.FillBackend("sh")
+    blend = backends.BlendBackend([a, b], [3.0, 1.0])                   # normalised to 3/4, 1/4
+    out, oa, ob = (m.complete(rgb, normal, mask) for m in (blend, a, b))
+    seen, hole = mask > 0.5, mask < 0.5
+    for e in completion.DEFAULT_EVS:
+        np.testing.assert_array_equal(out[e][seen], oa[e][seen])
+        ref = hdr.expose(0.75 * hdr.unexpose(oa[e], e) + 0.25 * hdr.unexpose(ob[e], e), e)
+        np.testing.assert_allclose(out[e][hole], ref[hole], atol=2e-6)
+        assert out[e].dtype == np.float32 and out[e].shape == rgb.shape
+    # the fused hole's radiance is the weighted mean (both fills stay below EV -5's white)
+    fused = hdr.fuse_brackets(out)
+    want = 0.75 * hdr.fuse_brackets(oa) + 0.25 * hdr.fuse_brackets(ob)
+    np.testing.assert_allclose(fused[hole], want[hole], rtol=1e-4, atol=1e-6)
+    assert blend.name == "push_pull+sh"
+
+
+def test_blend_backend_rejects_bad_weights_and_inputs():
+    fill = backends.FillBackend("sh")
+    for w in ([1.0], [1.0, -1.0], [0.0, 0.0], [np.nan, 1.0]):
+        with pytest.raises(ValueError):
+            backends.BlendBackend([fill, fill], w)
+    with pytest.raises(ValueError):
+        backends.BlendBackend([])
+    with pytest.raises(ValueError, match="BlendBackend"):
+        backends.BlendBackend([fill]).complete(np.zeros((4, 8, 3)), None, np.ones((4, 9)))

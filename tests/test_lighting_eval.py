@@ -82,10 +82,11 @@ def test_lighting_eval_smoke(tmp_path, pano_data, variant, capsys):
     assert n == 2 * 3 and 0 <= k <= n                 # 3 coverage groups x 2 metrics
     assert np.isfinite(float(m.group(3))) and np.isfinite(float(m.group(4)))
     assert out["skipped"] == 1                        # --quick: 2 masks per map, 30 % skipped
-    methods = ["net", "net+lights", "mean", "push_pull", "push_pull+lights", "sh"]
-    assert [r["method"] for r in out["records"][:6]] == methods
+    methods = ["net", "net+lights", "net+sh", "net+sh+lights", "mean", "push_pull",
+               "push_pull+lights", "sh"]
+    assert [r["method"] for r in out["records"][:len(methods)]] == methods
     assert len(out["records"]) == 3 * len(methods)    # kept masks x methods
-    assert out["ours"] == "net+lights"
+    assert out["ours"] == "net+sh+lights"
     assert re.fullmatch(r"light_angle_visible ours=\S+ best_baseline=\S+ \(\S+\)", lines[-2])
     for r in out["records"]:
         assert all(np.isfinite(r[key]) for key in ("si_rmse", "angular_deg", "nrmse",
@@ -96,7 +97,7 @@ def test_lighting_eval_smoke(tmp_path, pano_data, variant, capsys):
     assert {r["label"] for r in out["records"]} == {"indoor", "outdoor"}
     assert (tmp_path / "fig" / "lighting_eval.png").stat().st_size > 0
     dump = json.loads((tmp_path / "r.json").read_text())
-    assert dump["summary"]["net_wins"] == k and len(dump["records"]) == 18
+    assert dump["summary"]["net_wins"] == k and len(dump["records"]) == 3 * len(methods)
     assert any(l.startswith("| coverage | light | method |") for l in lines)
 
 

@@ -177,6 +177,25 @@ def test_head_weights_round_trip_and_errors(tmp_path):
         L.load_head(tmp_path / "bad.pt")
 
 
+def test_head_ensemble_is_the_mean_log_gain_and_round_trips(tmp_path):
+    torch.manual_seed(3)
+    heads = [L.LightHead() for _ in range(3)]
+    for h in heads:
+        torch.nn.init.normal_(h.mlp[0].weight)
+    ens = L.HeadEnsemble(heads).eval()
+    x = torch.randn(7, len(L.FEATURES))
+    ref = torch.stack([h.eval()(x) for h in heads]).mean(0)
+    torch.testing.assert_close(ens(x), ref)
+    back = L.load_head(L.save_head(ens, tmp_path / "e.pt"))
+    assert isinstance(back, L.HeadEnsemble) and len(back.heads) == 3
+    torch.testing.assert_close(back(x), ref)
+    img, _ = _sun_map()
+    lobes = L.predict_lobes(expose(img * 0.05, 0.0), np.ones((64, 128)), back, 1)
+    assert lobes and all(np.isfinite(lb["gain"]) and lb["gain"] >= 1 for lb in lobes)
+    with pytest.raises(ValueError):
+        L.HeadEnsemble([])
+
+
 def test_training_targets_are_the_true_power_ratio():
     """_draws: a full view of a map with a 5e4 sun gives target log(P_true / P_seen)."""
     from comgs_dr.stages.train_light_head import TrainLightHeadConfig, _draws

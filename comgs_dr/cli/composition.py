@@ -63,7 +63,7 @@ def _cmd_compose(args) -> int:
     if args.env is None:
         scene_ply = str(Path(args.scene_run) / "point_cloud.ply")
         ecfg = EstimateConfig(label=args.label)
-        backend = backends.load_network_backend()
+        backend = backends.default_backend()
         estimator = lambda pos: estimate_light(scene_ply, pos, ecfg, backend)["hdr"]  # noqa: E731
     s = compose(args.scene_run, objects, args.placement, args.out, env=args.env,
                 estimator=estimator, cfg=cfg, progress=not args.quiet)

@@ -30,8 +30,9 @@ def _add_estimate_light(sub) -> None:
     p.add_argument("--supersample", type=int, default=d.supersample)
     p.add_argument("--oct-res", type=int, default=d.oct_res,
                    help=f"octahedral map side (default {d.oct_res})")
-    p.add_argument("--backend", choices=("net", "mean", "push_pull", "sh", "diffusers"),
-                   default="net", help="completion backend (default net: the shipped weights)")
+    p.add_argument("--backend", choices=("net+sh", "net", "mean", "push_pull", "sh", "diffusers"),
+                   default="net+sh", help="completion backend (default net+sh: the shipped "
+                   "weights, their hole averaged with the SH fill; net: the weights alone)")
     p.add_argument("--weights", metavar="PATH", help="completion-net checkpoint (backend net)")
     p.add_argument("--net-resolution", type=int, nargs=2, metavar=("H", "W"),
                    help="network input size (default: the size the weights were trained at)")
@@ -46,9 +47,11 @@ def _add_estimate_light(sub) -> None:
 
 
 def _estimate_backend(args):
-    if args.backend == "net":
+    if args.backend in ("net", "net+sh"):
         res = tuple(args.net_resolution) if args.net_resolution else None
-        return backends.load_network_backend(args.weights, res)
+        net = backends.load_network_backend(args.weights, res)
+        return net if args.backend == "net" else backends.BlendBackend(
+            [net, backends.FillBackend("sh")])
     if args.backend == "diffusers":
         if not args.diffusers_dir:
             raise ValueError("--backend diffusers needs --diffusers-dir DIR")

@@ -55,7 +55,7 @@ from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
 from comgs_dr.lighting.hdr import label_equirect
 
 __all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_regions",
-           "FEATURES", "region_features", "LightHead", "save_head", "load_head",
+           "FEATURES", "region_features", "LightHead", "HeadEnsemble", "save_head", "load_head",
            "DEFAULT_HEAD", "predict_lobes", "add_lights", "SAT"]
 
 SAT = 0.98                 # EV-0 max channel at/above which a pixel counts as clipped
@@ -255,18 +255,37 @@ class LightHead(nn.Module):
         return nn.functional.softplus(self.mlp((x - self.mean) / self.std)[..., 0])
 
 
-def save_head(head: LightHead, path, info: dict | None = None) -> Path:
+class HeadEnsemble(nn.Module):
+    """The mean log gain of LightHeads fitted with different seeds (``fit_head``)."""
+
+    def __init__(self, heads: list[LightHead]):
+        super().__init__()
+        if not heads:
+            raise ValueError("HeadEnsemble: need at least one head")
+        self.heads = nn.ModuleList(heads)
+        self.hidden = heads[0].hidden
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.stack([h(x) for h in self.heads]).mean(0)
+
+
+def _cpu_state(head: LightHead) -> dict:
+    return {k: v.detach().cpu() for k, v in head.state_dict().items()}
+
+
+def save_head(head: LightHead | HeadEnsemble, path, info: dict | None = None) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    members = list(head.heads) if isinstance(head, HeadEnsemble) else [head]
     torch.save({"format": _FORMAT, "features": list(FEATURES), "hidden": head.hidden,
-                "state_dict": {k: v.detach().cpu() for k, v in head.state_dict().items()},
-                "info": info or {}}, path)
+                "state_dict": _cpu_state(members[0]),
+                "members": [_cpu_state(h) for h in members[1:]], "info": info or {}}, path)
     return path
 
 
-def load_head(path=DEFAULT_HEAD) -> LightHead:
-    """LightHead (eval mode) from ``save_head``; FileNotFoundError if missing, ValueError for
-    another format or another feature list."""
+def load_head(path=DEFAULT_HEAD) -> LightHead | HeadEnsemble:
+    """LightHead, or HeadEnsemble when the file holds several, (eval mode) from ``save_head``;
+    FileNotFoundError if missing, ValueError for another format or another feature list."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"light head weights not found: {path}")
@@ -278,9 +297,11 @@ def load_head(path=DEFAULT_HEAD) -> LightHead:
         raise ValueError(f"{path}: not a light-head file (format {_FORMAT!r} expected)")
     if ck.get("features") != list(FEATURES):
         raise ValueError(f"{path}: made for other features; retrain with comgs train-light-head")
-    head = LightHead(len(FEATURES), int(ck["hidden"]))
-    head.load_state_dict(ck["state_dict"])
-    return head.eval()
+    heads = []
+    for sd in [ck["state_dict"], *ck.get("members", [])]:
+        heads.append(LightHead(len(FEATURES), int(ck["hidden"])))
+        heads[-1].load_state_dict(sd)
+    return (heads[0] if len(heads) == 1 else HeadEnsemble(heads)).eval()
 
 
 @torch.no_grad()

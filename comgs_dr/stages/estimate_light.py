@@ -49,7 +49,7 @@ from comgs_dr.core.equirect import coverage
 from comgs_dr.data.images import to_u8
 from comgs_dr.lighting import envmap, hdr
 from comgs_dr.lighting import lights as light_head
-from comgs_dr.lighting.backends import load_network_backend
+from comgs_dr.lighting.backends import default_backend
 from comgs_dr.lighting.completion import LABELS, CompletionBackend
 from comgs_dr.surfels import load_ply, panorama
 from comgs_dr.surfels.panorama import PanoramaConfig
@@ -177,8 +177,8 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
                    backend: CompletionBackend | None = None) -> dict:
     """HDR environment map at ``position`` of a surfel scene (Mitsuba scene or PLY path).
 
-    ``backend`` default: ``backends.load_network_backend(resolution=cfg.net_resolution)``
-    (the shipped weights). Returns a dict of NumPy float32 arrays and metadata:
+    ``backend`` default: ``backends.default_backend(resolution=cfg.net_resolution)`` (the
+    shipped net, its hole averaged with the SH fill). Returns a dict of NumPy float32 arrays and metadata:
     ``hdr`` [H, W, 3] linear equirect (trace size), ``oct`` [R, R, 3] octahedral map,
     ``ldrs`` {ev: [H, W, 3]} completions, ``input`` {"rgb", "normal", "mask"} fed to the
     backend, ``lights`` (``hdr.extract_lights``), ``coverage`` (solid-angle fraction),
@@ -196,7 +196,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
         scene, space, source = scene_or_ply_path, "srgb", "<scene>"
     space = cfg.colour_space or space
     if backend is None:
-        backend = load_network_backend(resolution=cfg.net_resolution)
+        backend = default_backend(resolution=cfg.net_resolution)
     timings["load"] = time.perf_counter() - t0
 
     t = time.perf_counter()
@@ -317,7 +317,7 @@ def _load_head(spec: str):
 
 
 def _backend_name(backend) -> str:
-    kind = getattr(backend, "kind", None)
+    kind = getattr(backend, "kind", None) or getattr(backend, "name", None)
     return type(backend).__name__ + (f"({kind})" if kind else "")
 
 
