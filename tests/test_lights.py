@@ -244,6 +244,17 @@ def test_train_light_head_tiny_run(tmp_path):
     img, _ = _sun_map()
     lobes = L.predict_lobes(expose(img * 0.05, 0.0), np.ones((64, 128)), head, 0)
     assert lobes and all(np.isfinite(lb["gain"]) and lb["gain"] >= 1 for lb in lobes)
+    from dataclasses import replace
+    ens_cfg = replace(cfg, out=tmp_path / "ens.pt", ensemble=3, cv=False)
+    info2 = train(ens_cfg, progress=False, command="test")              # the cached data
+    assert info2["data_seconds"] == info["data_seconds"]
+    ens = L.load_head(ens_cfg.out)
+    assert isinstance(ens, L.HeadEnsemble) and len(ens.heads) == 3
+    x = torch.from_numpy(L.region_features(expose(img * 0.05, 0.0), np.ones((64, 128)),
+                                           L.clipped_regions(expose(img * 0.05, 0.0),
+                                                             np.ones((64, 128))), 0))
+    torch.testing.assert_close(ens(x), torch.stack([h(x) for h in ens.heads]).mean(0))
+    torch.testing.assert_close(ens.heads[0](x), head(x))                 # member 0 = seed 0
 
 
 def test_shipped_head_recovers_unseen_suns():
