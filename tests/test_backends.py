@@ -271,7 +271,7 @@ class _Bright(backends.FillBackend):
 def test_blend_backend_keeps_the_first_where_seen_and_averages_radiance_in_the_hole():
     rgb, normal, mask = _pano()
     a, b = _Bright("push_pull"), backends.FillBackend("sh")
-    blend = backends.BlendBackend([a, b], [3.0, 1.0])                   # normalised to 3/4, 1/4
+    blend = backends.BlendBackend([a, b], [3.0, 1.0], keep_lights=False)   # 3/4, 1/4
     out, oa, ob = (m.complete(rgb, normal, mask) for m in (blend, a, b))
     seen, hole = mask > 0.5, mask < 0.5
     for e in completion.DEFAULT_EVS:
@@ -295,3 +295,28 @@ def test_blend_backend_rejects_bad_weights_and_inputs():
         backends.BlendBackend([])
     with pytest.raises(ValueError, match="BlendBackend"):
         backends.BlendBackend([fill]).complete(np.zeros((4, 8, 3)), None, np.ones((4, 9)))
+
+
+def test_blend_backend_keeps_the_first_backends_lights_in_the_hole():
+    rgb, normal, mask = _pano()
+
+    class _Lamp(backends.FillBackend):       # puts a clipped lamp into the hole
+        def complete(self, rgb, normal, mask, evs=completion.DEFAULT_EVS, label=2):
+            out = super().complete(rgb, normal, mask, evs, label)
+            rad = hdr.unexpose(out[0.0], 0.0)
+            rad[10:12, 14:16] = 20.0
+            return {e: hdr.expose(rad, e).astype(np.float32) for e in out}
+
+    a, b = _Lamp("push_pull"), backends.FillBackend("sh")
+    oa = a.complete(rgb, normal, mask)
+    kept = backends.BlendBackend([a, b]).complete(rgb, normal, mask)
+    halved = backends.BlendBackend([a, b], keep_lights=False).complete(rgb, normal, mask)
+    lamp = np.zeros(mask.shape, bool)
+    lamp[10:12, 14:16] = True
+    for e in completion.DEFAULT_EVS:
+        np.testing.assert_array_equal(kept[e][lamp], oa[e][lamp])
+    f_kept, f_half = hdr.fuse_brackets(kept), hdr.fuse_brackets(halved)
+    np.testing.assert_allclose(f_kept[lamp], 20.0, rtol=1e-3)
+    assert (f_half[lamp] < 11.0).all()                                   # ½ lamp + ½ SH
+    rest = (mask < 0.5) & ~lamp
+    np.testing.assert_array_equal(f_kept[rest], f_half[rest])

@@ -116,3 +116,31 @@ def test_held_out_selects_the_never_trained_maps(tmp_path, pano_data, variant, c
     (maps / f"{HELD_OUT[0]}.exr").unlink()
     with pytest.raises(FileNotFoundError, match="--held-out"):
         _bench().main(["--maps", str(maps), "--held-out", "--quick"])
+
+
+def test_draws_pool_independent_rotations_and_report_each(tmp_path, pano_data, variant, capsys):
+    from comgs_dr.lighting.envmap import write_exr
+    maps = tmp_path / "maps"
+    d = equirect_directions(16, 32)
+    sky = 0.2 + 0.8 * np.clip(d[..., 2:], 0, 1) * np.array([0.6, 0.8, 1.0])
+    sky[4, 3] = 2e3                                                      # a sun to rotate
+    write_exr(maps / "sky.exr", sky, "equirect")
+    common = ["--maps", str(maps), "--quick", "--light-head", "none", "--out",
+              str(tmp_path / "fig"), "--examples", "0", "--seed", "3"]
+    one = _bench().main(common)
+    capsys.readouterr()
+    two = _bench().main(common + ["--draws", "2"])
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(two["records"]) == 2 * len(one["records"])
+    assert {r["draw"] for r in two["records"]} == {3, 4}
+    first = [r for r in two["records"] if r["draw"] == 3]
+    assert [(r["method"], r["shift"]) for r in first] == \
+        [(r["method"], r["shift"]) for r in one["records"]]            # draw 0 = the single run
+    second = [r for r in two["records"] if r["draw"] == 4]
+    assert [r["shift"] for r in second] != [r["shift"] for r in first]   # another rotation
+    n = len({(r["map"], r["mask"]) for r in one["records"]})
+    assert [l.split()[1:3] for l in lines if l.startswith("draw seed=")] == \
+        [["seed=3", f"samples={n}"], ["seed=4", f"samples={n}"]]
+    assert lines[-1].startswith("net_wins=") and lines[-2].startswith("light_angle_visible")
+    with pytest.raises(SystemExit):
+        _bench().main(common + ["--draws", "0"])
