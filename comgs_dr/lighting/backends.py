@@ -100,6 +100,23 @@ class FillBackend(CompletionBackend):
 # ---------------------------------------------------------------------------------------
 # The trained completion network
 
+def load_network_backend(path=None, resolution: tuple[int, int] | None = None
+                         ) -> NetworkBackend:
+    """``NetworkBackend`` of the ``CompletionNet`` checkpoint at ``path`` (default
+    ``DEFAULT_WEIGHTS``). FileNotFoundError, saying how to produce weights, when missing;
+    ``completion.WeightsError`` for an unusable file."""
+    p = Path(DEFAULT_WEIGHTS if path is None else path)
+    if not p.is_file():
+        raise FileNotFoundError(
+            f"completion weights not found: {p}. Train them with `comgs train-completion` "
+            f"(or pass a checkpoint saved by comgs_dr.lighting.completion.save_weights), or "
+            f"use a non-learned backend (--backend push_pull)")
+    return NetworkBackend(completion.load_weights(p), resolution)
+
+
+# ---------------------------------------------------------------------------------------
+# Blends of backends (the default: net + SH fill)
+
 class BlendBackend(CompletionBackend):
     """The first backend's brackets where the panorama is observed (and, with
     ``keep_lights``, where its EV-0 bracket is clipped, max channel ≥ ``sat``: a light it put
@@ -155,20 +172,6 @@ def default_backend(resolution: tuple[int, int] | None = None) -> "BlendBackend"
     """What ``estimate-light``, ``compose`` and the demo use: ½ the shipped net + ½ the SH
     fill in the hole (``BlendBackend``)."""
     return BlendBackend([load_network_backend(resolution=resolution), FillBackend("sh")])
-
-
-def load_network_backend(path=None, resolution: tuple[int, int] | None = None
-                         ) -> NetworkBackend:
-    """``NetworkBackend`` of the ``CompletionNet`` checkpoint at ``path`` (default
-    ``DEFAULT_WEIGHTS``). FileNotFoundError, saying how to produce weights, when missing;
-    ``completion.WeightsError`` for an unusable file."""
-    p = Path(DEFAULT_WEIGHTS if path is None else path)
-    if not p.is_file():
-        raise FileNotFoundError(
-            f"completion weights not found: {p}. Train them with `comgs train-completion` "
-            f"(or pass a checkpoint saved by comgs_dr.lighting.completion.save_weights), or "
-            f"use a non-learned backend (--backend push_pull)")
-    return NetworkBackend(completion.load_weights(p), resolution)
 
 
 # ---------------------------------------------------------------------------------------
