@@ -163,3 +163,106 @@ def test_cli_make_dataset_with_sky_views(sky_scene, tmp_path):
     comp = json.loads((tmp_path / "d" / "composition.json").read_text())
     assert comp["scene"]["n_train"] == 5 and comp["scene"]["sky_views"] == 2
     assert comp["scene"]["shapes"]["ground"]["half_size"] == 6.0
+
+
+def test_sky_cameras_aim_at_the_sun():
+    """``aim_deg``: the first view looks along the given azimuth, its pitch clamped to the
+    range; the others keep stratified azimuths."""
+    for aim, pitch in (((123.0, 12.0), 12.0), ((-40.0, 60.0), 30.0)):
+        cams = cd.sky_cameras(6, 10.0, np.random.default_rng(1), (5.0, 30.0), aim_deg=aim)
+        m = np.asarray(cams[0]["transform_matrix"])
+        fwd = -m[:3, 2]
+        assert abs(np.degrees(np.arcsin(fwd[2])) - pitch) < 1e-6
+        az = np.degrees(np.arctan2(fwd[1], fwd[0]))
+        assert abs((az - aim[0] + 180.0) % 360.0 - 180.0) < 1e-6
+        gaps = np.diff(sorted(c["azimuth_deg"] for c in cams))
+        assert gaps.max() < 2 * 360.0 / 6 + 1e-6                   # still sweeps around
+
+
+def test_capture_maps_record_clipped_pixels_at_their_texel(sky_scene, trained):
+    """A pixel clipped in red and blue, seen through the open sky, marks its nearest texel
+    in those channels with its T_final; green and every other texel stay 0. The observed
+    map is ``observed_fraction``'s."""
+    from comgs_dr.core import octahedral as octa
+    from comgs_dr.core.cameras import camera_rays
+    from comgs_dr.surfels import load_ply
+    from comgs_dr.surfels.scene import gbuffer_scene
+    run, _ = trained
+    data = load_dataset(sky_scene / "scene")
+    p = load_ply(run / "point_cloud.ply")
+    rad, _ = bgenv.load(run)
+    from comgs_dr.emitters.octenvmap import emitter_class
+    v = data.train[-1]
+    sc = gbuffer_scene(p, v.camera.sensor_dict(), max_hits=16, targets="color,weight",
+                       environment=emitter_class().from_radiance(rad), env_background=True)
+    integ = sc.integrator()
+    T = 1.0 - np.asarray(integ.split(mi.render(sc))["weight"]).reshape(-1)
+    k = int(np.argmax(T))
+    assert T[k] > 0.5
+    img = np.zeros((v.camera.height * v.camera.width, 3))
+    img[k] = [1.0, 0.5, 0.99]
+    obs, clip = bgenv.capture_maps(sc, integ, [0], 16, [img.reshape(v.image.shape)])
+    assert np.array_equal(obs, bgenv.observed_fraction(sc, integ, [0], 16))
+    d = np.asarray(camera_rays(sc.sensors()[0])[0]).reshape(-1, 3)[k]
+    tx = np.clip(np.floor(octa.dir_to_uv_np(d[None])[0] * 16).astype(int), 0, 15)
+    assert clip.shape == (16, 16, 3)
+    assert np.isclose(clip[tx[1], tx[0], 0], T[k], atol=1e-6)
+    assert np.isclose(clip[tx[1], tx[0], 2], T[k], atol=1e-6)
+    assert clip[..., 1].max() == 0
+    clip[tx[1], tx[0]] = 0
+    assert clip.max() == 0
+    _, none = bgenv.capture_maps(sc, integ, [0], 16, [np.zeros(v.image.shape)])
+    assert none.max() == 0
+    with pytest.raises(ValueError, match="pixels"):
+        bgenv.capture_maps(sc, integ, [0], 16, [np.zeros((3, 3, 3))])
+
+
+def test_clipped_file_round_trip_and_old_runs(tmp_path):
+    rad = np.full((8, 8, 3), 0.5)
+    bgenv.save(tmp_path, rad, np.ones((8, 8)))
+    assert bgenv.load_clipped(tmp_path) is None                    # a run from before
+    c = np.zeros((8, 8, 3))
+    c[3, 4, 0] = 1.0
+    bgenv.save(tmp_path, rad, np.ones((8, 8)), c)
+    assert np.array_equal(bgenv.load_clipped(tmp_path), c)
+    with pytest.raises(ValueError, match="does not match"):
+        bgenv.save(tmp_path, rad, np.ones((8, 8)), c[:4])
+    from comgs_dr.core import exr
+    exr.write_image(tmp_path / bgenv.CLIPPED_FILE, np.full((8, 8, 3), np.nan, np.float32))
+    with pytest.raises(ValueError, match="non-finite"):
+        bgenv.load_clipped(tmp_path)
+    exr.write_image(tmp_path / bgenv.CLIPPED_FILE, np.zeros((4, 4, 3), np.float32))
+    with pytest.raises(ValueError, match="does not match"):
+        bgenv.load_clipped(tmp_path)
+
+
+def test_step1_writes_the_clipped_record_and_estimate_light_uses_it(trained, tmp_path):
+    """The trained run has a clipped record; a clipped texel in it turns into a white,
+    observed region of the placement's panorama that the light head sees."""
+    import shutil
+    run, _ = trained
+    c = bgenv.load_clipped(run)
+    assert c is not None and c.shape == (16, 16, 3) and 0 <= c.min() and c.max() <= 1
+    run2 = tmp_path / "run"
+    shutil.copytree(run, run2)
+    rad, obs = bgenv.load(run2)
+    from comgs_dr.core.octahedral import texel_directions_np
+    dirs = texel_directions_np(16).reshape(16, 16, 3)
+    up = (dirs[..., 2] > 0.3) & (obs > 0.9)
+    assert up.any()
+    j, i = np.argwhere(up)[0]
+    c = np.zeros((16, 16, 3))
+    c[j, i] = 1.0
+    rad = np.minimum(rad, 0.8)                                     # nothing white on its own
+    bgenv.save(run2, rad, obs, c)
+    pos = [0.0, 0.0, 0.3]
+    cfg = EstimateConfig(width=128, height=64, oct_res=16, light_head="none")
+    r = estimate_light(run2 / "point_cloud.ply", pos, cfg, FillBackend("mean"))
+    assert r["meta"]["trace"]["background_clipped"] > 0
+    from comgs_dr.lighting import lights
+    regs = lights.clipped_regions(r["input"]["rgb"], r["input"]["mask"])
+    assert regs, "the clipped texel is not a clipped region of the panorama"
+    assert np.degrees(np.arccos(np.clip(regs[0].direction @ dirs[j, i], -1, 1))) < 15
+    bgenv.save(run2, rad, obs, np.zeros((16, 16, 3)))
+    r0 = estimate_light(run2 / "point_cloud.ply", pos, cfg, FillBackend("mean"))
+    assert not lights.clipped_regions(r0["input"]["rgb"], r0["input"]["mask"])

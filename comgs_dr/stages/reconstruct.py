@@ -479,8 +479,9 @@ def train_radiance(data, run_dir, cfg: RadianceConfig, progress: bool = True) ->
     final = tr.evaluate()
     save_ply(tr.params(), str(run_dir / "point_cloud.ply"))
     if tr.env:
-        bgenv.save(run_dir, np.array(tr.mp[bgenv.KEY]), bgenv.observed_fraction(
-            tr.scene, tr.integ, list(range(len(tr.views))), cfg.env_resolution))
+        obs, clipped = bgenv.capture_maps(tr.scene, tr.integ, list(range(len(tr.views))),
+                                          cfg.env_resolution, [v.image for v in tr.views])
+        bgenv.save(run_dir, np.array(tr.mp[bgenv.KEY]), obs, clipped)
     summary = {"iterations": tr.iteration, "train_seconds": tr.elapsed, "surfels": tr.params().count,
                "init": tr.init_desc, "stopped_early": stopped_early, "diverged": diverged, **final,
                "config": dataclasses.asdict(cfg)}

@@ -220,7 +220,8 @@ def trace_panorama(scene, position, cfg: PanoramaConfig | None = None,
             "depth": depth.reshape(H, Wd).astype(f32), "meta": meta}
 
 
-def composite_background(trace: dict, radiance: np.ndarray, observed: np.ndarray) -> dict:
+def composite_background(trace: dict, radiance: np.ndarray, observed: np.ndarray,
+                         clipped: np.ndarray | None = None) -> dict:
     """A :func:`trace_panorama` result with a far-field background behind the surfels.
 
     ``radiance`` [H, W, 3]: the background in the radiance field's own colour space
@@ -241,6 +242,11 @@ def composite_background(trace: dict, radiance: np.ndarray, observed: np.ndarray
     inv = np.where(a >= W_EPS, 1.0 / np.maximum(a, W_EPS), 0.0)[..., None]
     srgb = trace["meta"].get("colour_space", "srgb") == "srgb"
     env = np.maximum(np.asarray(radiance, np.float64), 0.0)
+    if clipped is not None:
+        if np.shape(clipped) != (H, Wd, 3):
+            raise ValueError(f"composite_background: clipped {np.shape(clipped)} does not "
+                             f"match the panorama {(H, Wd, 3)}")
+        env = np.where(np.asarray(clipped) >= 0.5, np.maximum(env, 1.0), env)
     env_lin = np.asarray(colorspace.srgb_decode(np.clip(env, 0.0, 1.0))) if srgb else env
     out = dict(trace)
     out["ldr"] = ((W[..., None] * trace["ldr"] + o[..., None] * env) * inv).astype(np.float32)

@@ -11,8 +11,19 @@ E holds the radiance field's own display values (the training images' space), no
 radiance. After training, :func:`observed_fraction` records for every texel the largest
 transmittance T_final of the training rays that reached it: texels seen only through
 opaque surfels, or never, are not observed and are left to the completion network.
-Files: ``background.exr`` (octahedral RGB, ``layout`` metadata) and
-``background_observed.exr`` (the observed fraction, grey) in the run folder.
+
+The captures are LDR: a sun or lamp is stored at the white level in one or two pixels, and
+the fit (TV-smoothed, [0, 1], texels larger than those pixels) averages it with the sky
+around it, below white (``benchmarks/recon_light_e2e.py``: blender_sunrise's sun came back
+at 0.954, no clipped region was found at the placement and the sun's power was lost:
+E(sun)/E(up) −61 %). :func:`capture_maps` therefore also records, per texel and channel,
+whether a training ray that reached it with T_final ≥ ½ saw a *clipped* pixel (≥ ``CLIPPED``
+in that channel); the placement's panorama shows those texels at white, so the light head
+finds the light there (``surfels.panorama.composite_background``).
+
+Files: ``background.exr`` (octahedral RGB, ``layout`` metadata),
+``background_observed.exr`` (the observed fraction, grey) and ``background_clipped.exr``
+(per channel, the largest T_final of a ray that saw the channel clipped) in the run folder.
 """
 from __future__ import annotations
 
@@ -30,6 +41,8 @@ from comgs_dr.lighting.envmap import read_envmap_file, write_exr
 
 KEY = "environment.data"
 FILE, OBSERVED_FILE = "background.exr", "background_observed.exr"
+CLIPPED_FILE = "background_clipped.exr"
+CLIPPED = 0.98      # a display value at/above this is clipped (as ``lighting.lights.SAT``)
 
 
 def initial_emitter(resolution: int, views) -> "mi.Emitter":
@@ -68,11 +81,23 @@ def observed_fraction(scene, integ, sensors: list[int], resolution: int) -> np.n
 
     ``scene`` renders ``color`` and ``weight`` (T_final = 1 − W) with the ``surfel_gbuffer``
     integrator ``integ``; rays are the integrator's own (pixel centres)."""
+    return capture_maps(scene, integ, sensors, resolution)[0]
+
+
+def capture_maps(scene, integ, sensors: list[int], resolution: int, images=None,
+                 clipped: float = CLIPPED) -> tuple[np.ndarray, np.ndarray | None]:
+    """(observed [R, R], clipped [R, R, 3] or None): :func:`observed_fraction`, and with
+    ``images`` (the sensors' display images [H, W, 3]) per texel and channel the largest
+    T_final of a ray whose pixel is ≥ ``clipped`` in that channel. The clipped record goes
+    to the ray's nearest texel only (not the bilinear footprint): a one-pixel sun stays one
+    texel, not four."""
     obs = np.zeros(resolution * resolution, np.float64)
-    for i in sensors:
+    clip = None if images is None else np.zeros((resolution * resolution, 3), np.float64)
+    for k, i in enumerate(sensors):
         sensor = scene.sensors()[i]
         img = mi.render(scene, sensor=i)
-        T = 1.0 - np.asarray(integ.split(img)["weight"], np.float64).reshape(-1)     # [P]
+        T = np.clip(1.0 - np.asarray(integ.split(img)["weight"], np.float64).reshape(-1),
+                    0.0, 1.0)                                                     # [P]
         dirs, _ = camera_rays(sensor)
         d = np.asarray(dirs, np.float64).reshape(-1, 3)                             # [P, 3]
         x = octa.dir_to_uv_np(d) * resolution - 0.5                               # [P, 2]
@@ -81,18 +106,38 @@ def observed_fraction(scene, integ, sensors: list[int], resolution: int) -> np.n
             for dy in (0, 1):
                 i = np.clip(x0[:, 0] + dx, 0, resolution - 1)
                 j = np.clip(x0[:, 1] + dy, 0, resolution - 1)
-                np.maximum.at(obs, j * resolution + i, np.clip(T, 0.0, 1.0))
-    return obs.reshape(resolution, resolution)
+                np.maximum.at(obs, j * resolution + i, T)
+        if clip is not None:
+            im = np.asarray(images[k], np.float64)[..., :3].reshape(-1, 3)          # [P, 3]
+            if len(im) != len(T):
+                raise ValueError(f"capture_maps: image {k} has {len(im)} pixels, its sensor "
+                                 f"renders {len(T)}")
+            n = np.clip(np.floor(x + 0.5).astype(np.int64), 0, resolution - 1)    # nearest
+            hit = (im >= clipped) * T[:, None]                                    # [P, 3]
+            np.maximum.at(clip, n[:, 1] * resolution + n[:, 0], hit)
+    return (obs.reshape(resolution, resolution),
+            None if clip is None else clip.reshape(resolution, resolution, 3))
 
 
-def save(run_dir, radiance: np.ndarray, observed: np.ndarray) -> tuple[Path, Path]:
-    """Write ``background.exr`` (octahedral [R, R, 3]) and ``background_observed.exr``."""
+def save(run_dir, radiance: np.ndarray, observed: np.ndarray,
+         clipped: np.ndarray | None = None) -> tuple[Path, ...]:
+    """Write ``background.exr`` (octahedral [R, R, 3]), ``background_observed.exr`` and,
+    when given, ``background_clipped.exr`` ([R, R, 3])."""
     run_dir = Path(run_dir)
     a = write_exr(run_dir / FILE, np.asarray(radiance, np.float32), "octahedral")
     b = exr.write_image(run_dir / OBSERVED_FILE,
                         np.repeat(np.asarray(observed, np.float32)[..., None], 3, -1),
                         {"layout": "octahedral", "content": "observed fraction (max T_final)"})
-    return a, b
+    if clipped is None:
+        return a, b
+    clipped = np.asarray(clipped, np.float32)
+    if clipped.shape != np.shape(radiance):
+        raise ValueError(f"background.save: clipped {clipped.shape} does not match the "
+                         f"background {np.shape(radiance)}")
+    c = exr.write_image(run_dir / CLIPPED_FILE, clipped,
+                        {"layout": "octahedral", "content": "clipped fraction (max T_final "
+                         f"of a ray whose pixel is >= {CLIPPED}, per channel)"})
+    return a, b, c
 
 
 def load(run_dir) -> tuple[np.ndarray, np.ndarray] | None:
@@ -117,3 +162,22 @@ def load(run_dir) -> tuple[np.ndarray, np.ndarray] | None:
             raise ValueError(f"{run_dir / name} holds {int((~np.isfinite(a)).sum())} non-finite "
                              "values")
     return np.maximum(rad, 0.0), np.clip(obs, 0.0, 1.0)
+
+
+def load_clipped(run_dir) -> np.ndarray | None:
+    """The clipped record [R, R, 3] in [0, 1] of a run folder (:func:`capture_maps`), or None
+    for runs written before it existed. ValueError for non-finite values or a shape that
+    does not match ``background.exr``."""
+    run_dir = Path(run_dir)
+    if not (run_dir / CLIPPED_FILE).is_file():
+        return None
+    c = np.asarray(exr.read_image(run_dir / CLIPPED_FILE), np.float64)[..., :3]
+    if not np.isfinite(c).all():
+        raise ValueError(f"{run_dir / CLIPPED_FILE} holds {int((~np.isfinite(c)).sum())} "
+                         "non-finite values")
+    if (run_dir / FILE).is_file():
+        rad = read_envmap_file(run_dir / FILE)[0]
+        if c.shape != rad.shape:
+            raise ValueError(f"{run_dir / CLIPPED_FILE}: shape {c.shape} does not match the "
+                             f"background's {rad.shape}")
+    return np.clip(c, 0.0, 1.0)
