@@ -128,6 +128,26 @@ def coverage_group(c: float):
     return None
 
 
+class _LastCall:
+    """A backend that returns its last result again when called with the same inputs
+    (compared by content): ``net`` and the blend's net member then share one run of the
+    network per sample instead of two (about a third of an 8-mask run)."""
+
+    def __init__(self, backend):
+        self.backend, self.key, self.out = backend, None, None
+
+    def complete(self, rgb, normal, mask, evs=None, label=2):
+        import hashlib
+        h = hashlib.blake2b(digest_size=16)
+        for a in (rgb, normal, mask):
+            h.update(np.ascontiguousarray(a, np.float32).tobytes())
+        key = (h.hexdigest(), tuple(evs or ()), int(label))
+        if key != self.key:
+            self.key, self.out = key, self.backend.complete(rgb, normal, mask, evs=evs,
+                                                            label=label)
+        return {e: v.copy() for e, v in self.out.items()}
+
+
 def make_methods(weights, head_path=None, diffusers=None) -> tuple[dict, object]:
     """({name: (backend, with_lights)}, light head or None): the net (if weights) and
     net+lights (if a head), the fill baselines, push_pull+lights, diffusers (if asked)."""
@@ -143,7 +163,7 @@ def make_methods(weights, head_path=None, diffusers=None) -> tuple[dict, object]
     if weights is None and Path(backends.DEFAULT_WEIGHTS).is_file():
         weights = backends.DEFAULT_WEIGHTS
     if weights:
-        net = backends.load_network_backend(weights)
+        net = _LastCall(backends.load_network_backend(weights))
         methods["net"] = (net, False)
         if head is not None:
             methods["net+lights"] = (net, True)

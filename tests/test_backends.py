@@ -295,6 +295,12 @@ def test_blend_backend_rejects_bad_weights_and_inputs():
         backends.BlendBackend([])
     with pytest.raises(ValueError, match="BlendBackend"):
         backends.BlendBackend([fill]).complete(np.zeros((4, 8, 3)), None, np.ones((4, 9)))
+    rgb, mask = np.full((4, 8, 3), 0.5), np.ones((4, 8))
+    with pytest.raises(ValueError, match="evs must include 0"):      # keep_lights needs EV 0
+        backends.BlendBackend([fill, fill]).complete(rgb, None, mask, evs=(-2.5,))
+    out = backends.BlendBackend([fill, fill], keep_lights=False).complete(rgb, None, mask,
+                                                                         evs=(-2.5,))
+    assert list(out) == [-2.5]
 
 
 def test_blend_backend_keeps_the_first_backends_lights_in_the_hole():

@@ -101,6 +101,8 @@ def _add_make_dataset(sub) -> None:
     c.add_argument("--sky-views", type=int, dest="sky_views", metavar="N",
                    help="extra scene views from eye height looking out over the horizon, so the "
                         "capture sees the sky (default 0)")
+    c.add_argument("--sun-view", action="store_true", dest="sun_view", default=None,
+                   help="aim the first sky view at the sun (a low sun is then always seen)")
     c.add_argument("--ground-half", type=float, dest="ground_half", metavar="H",
                    help="half side of the square ground (default 25)")
     c.add_argument("--spp", type=int, metavar="S", help="samples per pixel of training views "
@@ -160,7 +162,8 @@ def _make_composition(args) -> int:
     from comgs_dr.data.composition_dataset import CompositionDatasetConfig, make_composition_dataset
     overrides = {k: getattr(args, k) for k in
                  ("objects", "scene_map", "object_map", "resolution", "scene_views", "object_views",
-                  "test_views", "spp", "sfm_points", "seed", "sky_views", "ground_half")
+                  "test_views", "spp", "sfm_points", "seed", "sky_views", "ground_half",
+                  "sun_view")
                  if getattr(args, k, None) is not None}
     cfg = CompositionDatasetConfig(out_dir=args.out, variant=set_variant(args.variant), **overrides)
     s = make_composition_dataset(cfg, progress=not args.quiet)

@@ -150,9 +150,13 @@ class BlendBackend(CompletionBackend):
 
     def complete(self, rgb, normal, mask, evs=DEFAULT_EVS, label=2) -> dict:
         rgb, normal, mask = check_inputs(rgb, normal, mask, "BlendBackend")
+        if self.keep_lights and 0.0 not in [float(e) for e in evs]:
+            raise ValueError(f"BlendBackend(keep_lights=True) finds the first backend's lights "
+                             f"in its EV-0 bracket: evs must include 0, got {list(evs)} (or "
+                             f"pass keep_lights=False)")
         outs = [m.complete(rgb, normal, mask, evs=evs, label=label) for m in self.members]
         seen = (np.asarray(mask) > 0.5)[..., None]                              # [H, W, 1]
-        if self.keep_lights and 0.0 in outs[0]:       # the first's lights in the hole stay whole
+        if self.keep_lights:                          # the first's lights in the hole stay whole
             seen = seen | (np.asarray(outs[0][0.0]).max(-1) >= self.sat)[..., None]
         res = {}
         for e in outs[0]:
