@@ -179,19 +179,18 @@ def test_sky_cameras_aim_at_the_sun():
         assert gaps.max() < 2 * 360.0 / 6 + 1e-6                   # still sweeps around
 
 
-def test_capture_maps_record_clipped_pixels_at_their_texel(sky_scene, trained):
-    """A pixel clipped in red and blue, seen through the open sky, marks its nearest texel
-    in those channels with its T_final; green and every other texel stay 0. The observed
-    map is ``observed_fraction``'s."""
-    from comgs_dr.core import octahedral as octa
+def test_capture_maps_record_clipped_rays(sky_scene, trained):
+    """A pixel clipped in red and blue, seen through the open sky, is recorded with its ray
+    direction, those channels, its T_final and its pixel radius; nothing else is. The
+    observed map is ``observed_fraction``'s."""
     from comgs_dr.core.cameras import camera_rays
+    from comgs_dr.emitters.octenvmap import emitter_class
     from comgs_dr.surfels import load_ply
     from comgs_dr.surfels.scene import gbuffer_scene
     run, _ = trained
     data = load_dataset(sky_scene / "scene")
     p = load_ply(run / "point_cloud.ply")
     rad, _ = bgenv.load(run)
-    from comgs_dr.emitters.octenvmap import emitter_class
     v = data.train[-1]
     sc = gbuffer_scene(p, v.camera.sensor_dict(), max_hits=16, targets="color,weight",
                        environment=emitter_class().from_radiance(rad), env_background=True)
@@ -201,48 +200,88 @@ def test_capture_maps_record_clipped_pixels_at_their_texel(sky_scene, trained):
     assert T[k] > 0.5
     img = np.zeros((v.camera.height * v.camera.width, 3))
     img[k] = [1.0, 0.5, 0.99]
-    obs, clip = bgenv.capture_maps(sc, integ, [0], 16, [img.reshape(v.image.shape)])
+    obs, rec = bgenv.capture_maps(sc, integ, [0], 16, [img.reshape(v.image.shape)])
     assert np.array_equal(obs, bgenv.observed_fraction(sc, integ, [0], 16))
     d = np.asarray(camera_rays(sc.sensors()[0])[0]).reshape(-1, 3)[k]
-    tx = np.clip(np.floor(octa.dir_to_uv_np(d[None])[0] * 16).astype(int), 0, 15)
-    assert clip.shape == (16, 16, 3)
-    assert np.isclose(clip[tx[1], tx[0], 0], T[k], atol=1e-6)
-    assert np.isclose(clip[tx[1], tx[0], 2], T[k], atol=1e-6)
-    assert clip[..., 1].max() == 0
-    clip[tx[1], tx[0]] = 0
-    assert clip.max() == 0
+    assert len(rec["directions"]) == 1
+    assert np.allclose(rec["directions"][0], d, atol=1e-6)
+    assert rec["channels"][0].tolist() == [1, 0, 1]
+    assert np.isclose(rec["weight"][0], T[k], atol=1e-6)
+    fov = np.radians(v.camera.fov_x_deg) / v.camera.width        # about one pixel's angle
+    assert 0.3 * fov < rec["radius"][0] < 0.8 * fov
     _, none = bgenv.capture_maps(sc, integ, [0], 16, [np.zeros(v.image.shape)])
-    assert none.max() == 0
+    assert len(none["directions"]) == 0
     with pytest.raises(ValueError, match="pixels"):
         bgenv.capture_maps(sc, integ, [0], 16, [np.zeros((3, 3, 3))])
 
 
-def test_clipped_file_round_trip_and_old_runs(tmp_path):
+def test_pixel_radius_is_the_equal_area_disc():
+    """A uniform angular grid of step a gives r = a/sqrt(pi) (area pi r^2 = a^2)."""
+    a = np.radians(0.5)
+    th, ph = np.meshgrid(np.arange(5) * a, np.pi / 2 + np.arange(4) * a)
+    d = np.stack([np.sin(ph) * np.cos(th), np.sin(ph) * np.sin(th), np.cos(ph)], -1)
+    np.testing.assert_allclose(bgenv.pixel_radius(d), a / np.sqrt(np.pi), rtol=0.02)
+
+
+def _record(dirs, channels, radius=np.radians(0.6), weight=1.0):
+    dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    m = len(dirs)
+    return {"directions": dirs, "channels": np.asarray(channels).reshape(m, 3),
+            "weight": np.full(m, weight), "radius": np.full(m, radius)}
+
+
+def test_splat_record_covers_each_rays_disc():
+    """A ray's disc covers the panorama pixels within its radius, weighted by T per
+    channel; a radius smaller than the panorama's pixels still marks the ray's pixel."""
+    from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
+    h, w = 128, 256
+    d = np.array([0.6, 0.3, 0.5])
+    d /= np.linalg.norm(d)
+    out = bgenv.splat_record(_record(d, [1, 1, 0], radius=np.radians(5.0), weight=0.8), h, w)
+    ang = np.degrees(np.arccos(np.clip(equirect_directions(h, w) @ d, -1, 1)))
+    on = out[..., 0] > 0
+    assert np.all(ang[on] <= 5.0 + 1.5)                     # + the ray's own pixel
+    assert np.all(on[ang < 5.0])
+    assert np.allclose(out[on][:, :2], 0.8) and out[..., 2].max() == 0
+    area = (pixel_solid_angles(h, w) * np.ones((h, w)))[on].sum()
+    assert abs(area / (np.pi * np.radians(5.0) ** 2) - 1) < 0.15
+    tiny = bgenv.splat_record(_record(d, [1, 1, 1], radius=1e-4), h, w)
+    assert (tiny.max(-1) > 0).sum() == 1
+    empty = bgenv.splat_record(_record(np.zeros((0, 3)), np.zeros((0, 3))), h, w)
+    assert empty.shape == (h, w, 3) and empty.max() == 0
+
+
+def test_clipped_record_round_trip_and_old_runs(tmp_path):
     rad = np.full((8, 8, 3), 0.5)
     bgenv.save(tmp_path, rad, np.ones((8, 8)))
     assert bgenv.load_clipped(tmp_path) is None                    # a run from before
-    c = np.zeros((8, 8, 3))
-    c[3, 4, 0] = 1.0
-    bgenv.save(tmp_path, rad, np.ones((8, 8)), c)
-    assert np.array_equal(bgenv.load_clipped(tmp_path), c)
-    with pytest.raises(ValueError, match="does not match"):
-        bgenv.save(tmp_path, rad, np.ones((8, 8)), c[:4])
-    from comgs_dr.core import exr
-    exr.write_image(tmp_path / bgenv.CLIPPED_FILE, np.full((8, 8, 3), np.nan, np.float32))
+    rec = _record([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]], [[1, 0, 0], [1, 1, 1]])
+    bgenv.save(tmp_path, rad, np.ones((8, 8)), rec)
+    back = bgenv.load_clipped(tmp_path)
+    for k in rec:
+        np.testing.assert_allclose(back[k], rec[k], atol=1e-6)
+    bad = dict(rec, weight=np.array([np.nan, 1.0]))
     with pytest.raises(ValueError, match="non-finite"):
-        bgenv.load_clipped(tmp_path)
-    exr.write_image(tmp_path / bgenv.CLIPPED_FILE, np.zeros((4, 4, 3), np.float32))
-    with pytest.raises(ValueError, match="does not match"):
+        bgenv.save(tmp_path, rad, np.ones((8, 8)), bad)
+    with pytest.raises(ValueError, match="differ in length"):
+        bgenv.save(tmp_path, rad, np.ones((8, 8)), dict(rec, radius=np.ones(3) * 0.01))
+    with pytest.raises(ValueError, match="unit"):
+        bgenv.save(tmp_path, rad, np.ones((8, 8)), dict(rec, directions=rec["directions"] * 2))
+    with pytest.raises(ValueError, match="needs directions"):
+        bgenv.save(tmp_path, rad, np.ones((8, 8)), {"directions": rec["directions"]})
+    np.savez(tmp_path / bgenv.CLIPPED_FILE, **dict(rec, radius=np.array([0.01, -1.0])))
+    with pytest.raises(ValueError, match="radii"):
         bgenv.load_clipped(tmp_path)
 
 
 def test_step1_writes_the_clipped_record_and_estimate_light_uses_it(trained, tmp_path):
-    """The trained run has a clipped record; a clipped texel in it turns into a white,
-    observed region of the placement's panorama that the light head sees."""
+    """The trained run has a clipped record; a recorded ray turns into a white, observed
+    region of the placement's panorama that the light head sees, in its direction."""
     import shutil
     run, _ = trained
-    c = bgenv.load_clipped(run)
-    assert c is not None and c.shape == (16, 16, 3) and 0 <= c.min() and c.max() <= 1
+    rec = bgenv.load_clipped(run)
+    assert rec is not None and rec["directions"].shape[1] == 3
     run2 = tmp_path / "run"
     shutil.copytree(run, run2)
     rad, obs = bgenv.load(run2)
@@ -251,18 +290,25 @@ def test_step1_writes_the_clipped_record_and_estimate_light_uses_it(trained, tmp
     up = (dirs[..., 2] > 0.3) & (obs > 0.9)
     assert up.any()
     j, i = np.argwhere(up)[0]
-    c = np.zeros((16, 16, 3))
-    c[j, i] = 1.0
     rad = np.minimum(rad, 0.8)                                     # nothing white on its own
-    bgenv.save(run2, rad, obs, c)
+    bgenv.save(run2, rad, obs, _record(dirs[j, i], [1, 1, 1], radius=np.radians(2.0)))
     pos = [0.0, 0.0, 0.3]
     cfg = EstimateConfig(width=128, height=64, oct_res=16, light_head="none")
     r = estimate_light(run2 / "point_cloud.ply", pos, cfg, FillBackend("mean"))
     assert r["meta"]["trace"]["background_clipped"] > 0
     from comgs_dr.lighting import lights
     regs = lights.clipped_regions(r["input"]["rgb"], r["input"]["mask"])
-    assert regs, "the clipped texel is not a clipped region of the panorama"
-    assert np.degrees(np.arccos(np.clip(regs[0].direction @ dirs[j, i], -1, 1))) < 15
-    bgenv.save(run2, rad, obs, np.zeros((16, 16, 3)))
+    assert regs, "the recorded ray is not a clipped region of the panorama"
+    assert np.degrees(np.arccos(np.clip(regs[0].direction @ dirs[j, i], -1, 1))) < 5
+    bgenv.save(run2, rad, obs, _record(np.zeros((0, 3)), np.zeros((0, 3))))
     r0 = estimate_light(run2 / "point_cloud.ply", pos, cfg, FillBackend("mean"))
     assert not lights.clipped_regions(r0["input"]["rgb"], r0["input"]["mask"])
+    # a record part wider than clipped_max_texels is not applied
+    big = _record(dirs[j, i], [1, 1, 1], radius=np.radians(40.0))
+    bgenv.save(run2, rad, obs, big)
+    r1 = estimate_light(run2 / "point_cloud.ply", pos, EstimateConfig(
+        width=128, height=64, oct_res=16, light_head="none", clipped_max_texels=16),
+        FillBackend("mean"))
+    assert r1["meta"]["trace"]["background_clipped"] == 0
+    r2 = estimate_light(run2 / "point_cloud.ply", pos, cfg, FillBackend("mean"))   # inf
+    assert r2["meta"]["trace"]["background_clipped"] > 100

@@ -87,9 +87,9 @@ class EstimateConfig:
                                     # (skipped with a warning if absent); "none": no head
     background: str = "auto"        # step 1's learned sky behind the surfels: "auto" (the
                                     # PLY's run folder, if it has one), "none", or a folder
-    clipped_max_texels: float = 16  # the step-1 record of clipped sky (``add_background``) is
-                                    # applied to its connected parts up to this many of the
-                                    # background's texels; 0: not at all, inf: everywhere
+    clipped_max_texels: float = float("inf")  # the step-1 record of clipped sky
+                                    # (``add_background``) is applied to its connected parts
+                                    # up to this many background texels (inf: all, 0: none)
 
     def validate(self) -> None:
         if self.label not in LABELS:
@@ -308,7 +308,7 @@ def add_background(trace: dict, run_dir, clipped_max_texels: float = np.inf) -> 
                          f"{W}x{H}")
     clipped = bgenv.load_clipped(run_dir)
     clip_eq = None if clipped is None else small_parts(
-        envmap.oct_to_equirect_np(clipped, W),
+        bgenv.splat_record(clipped, H, W),
         float(clipped_max_texels) * 4.0 * np.pi / rad.shape[0] ** 2)            # [H, W, 3]
     out = panorama.composite_background(trace, rad_eq, obs_eq, clip_eq)
     out["meta"]["background"] = str(run_dir)
@@ -321,16 +321,13 @@ def small_parts(clipped: np.ndarray, max_sr: float) -> np.ndarray:
     """The record ``clipped`` [H, W, 3] (equirect) kept only in its connected parts (≥ ½ in
     any channel, ``hdr.label_equirect``) of solid angle ≤ ``max_sr``; zero elsewhere.
 
-    Why: the fit loses clipping only where a clipped feature is about a texel wide (a sun
-    averaged with the sky around it). Broad clipped sky is already held near white by the
-    fit, and the record there only joins neighbouring patches into one region that the
-    light head reads as a single big light. ``benchmarks/recon_light_e2e.py`` (record
-    everywhere vs none): blender_sunrise E(sun)/E(up) −57 % → −22 %, but forest_slope's
-    dominant light went from 7° to 76° off: its patches of bright sky merged into a 0.72 sr
-    region whose gain the head over-predicted 2× (5.4 vs 2.7). Up to 0.01 sr (a 128² step-1
-    background: 13 texels) kept the sun and left both broad cases as without the record;
-    0.03 sr turned blender_courtyard's dominant light 139° away (the default, 16 texels, was
-    chosen from these held-out maps)."""
+    An option, off by default (inf). It was the default while the record was kept per
+    texel: a 1.6° texel record joined patches of bright sky into one 0.5–1.5 sr region whose
+    gain the light head over-predicted (forest_slope 5.4× vs 2.7×, dominant light 76° off).
+    With the record kept per ray (the capture's own pixels) a 16-texel limit measured no
+    better (``benchmarks/recon_light_e2e.py``, 7 maps, E(sun)/E(up) within 25 % on 5 and 5 at
+    512×256, 4 and 4 at 1024×512) and turned forest_slope's dominant light 54° away (5°
+    with the whole record)."""
     if not np.isfinite(max_sr):
         return clipped
     on = clipped.max(-1) >= 0.5                                                  # [H, W]

@@ -16,14 +16,14 @@ The captures are LDR: a sun or lamp is stored at the white level in one or two p
 the fit (TV-smoothed, [0, 1], texels larger than those pixels) averages it with the sky
 around it, below white (``benchmarks/recon_light_e2e.py``: blender_sunrise's sun came back
 at 0.954, no clipped region was found at the placement and the sun's power was lost:
-E(sun)/E(up) −61 %). :func:`capture_maps` therefore also records, per texel and channel,
-whether a training ray that reached it with T_final ≥ ½ saw a *clipped* pixel (≥ ``CLIPPED``
-in that channel); the placement's panorama shows those texels at white, so the light head
-finds the light there (``surfels.panorama.composite_background``).
+E(sun)/E(up) −61 %). :func:`capture_maps` therefore also records
+the rays that saw the open sky (T_final ≥ ½) *clipped* (≥ ``CLIPPED`` in a channel): their
+directions, channels and pixel sizes. The placement's panorama shows those directions at
+white, so the light head finds the light there (``surfels.panorama.composite_background``).
 
 Files: ``background.exr`` (octahedral RGB, ``layout`` metadata),
-``background_observed.exr`` (the observed fraction, grey) and ``background_clipped.exr``
-(per channel, the largest T_final of a ray that saw the channel clipped) in the run folder.
+``background_observed.exr`` (the observed fraction, grey) and ``background_clipped.npz``
+(the clipped record) in the run folder.
 """
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ from comgs_dr.lighting.envmap import read_envmap_file, write_exr
 
 KEY = "environment.data"
 FILE, OBSERVED_FILE = "background.exr", "background_observed.exr"
-CLIPPED_FILE = "background_clipped.exr"
+CLIPPED_FILE = "background_clipped.npz"
 CLIPPED = 0.98      # a display value at/above this is clipped (as ``lighting.lights.SAT``)
 
 
@@ -84,22 +84,41 @@ def observed_fraction(scene, integ, sensors: list[int], resolution: int) -> np.n
     return capture_maps(scene, integ, sensors, resolution)[0]
 
 
+def pixel_radius(dirs) -> np.ndarray:
+    """[H, W] angular radius (rad) of a disc with each pixel's solid angle, from the ray
+    directions ``dirs`` [H, W, 3] through the pixel centres: the angles to the next pixel
+    across and down give the pixel's sides a, b, and r = sqrt(a·b/π) (equal area)."""
+    d = np.asarray(dirs, np.float64)
+    def ang(u, v):
+        return np.arccos(np.clip((u * v).sum(-1), -1.0, 1.0))
+    a = ang(d[:, 1:], d[:, :-1])                                            # [H, W-1]
+    b = ang(d[1:], d[:-1])                                                  # [H-1, W]
+    a = np.concatenate([a, a[:, -1:]], 1) if a.shape[1] else np.full(d.shape[:2], np.pi)
+    b = np.concatenate([b, b[-1:]], 0) if b.shape[0] else a
+    return np.sqrt(a * b / np.pi)
+
+
 def capture_maps(scene, integ, sensors: list[int], resolution: int, images=None,
-                 clipped: float = CLIPPED) -> tuple[np.ndarray, np.ndarray | None]:
-    """(observed [R, R], clipped [R, R, 3] or None): :func:`observed_fraction`, and with
-    ``images`` (the sensors' display images [H, W, 3]) per texel and channel the largest
-    T_final of a ray whose pixel is ≥ ``clipped`` in that channel. The clipped record goes
-    to the ray's nearest texel only (not the bilinear footprint): a one-pixel sun stays one
-    texel, not four."""
+                 clipped: float = CLIPPED) -> tuple[np.ndarray, dict | None]:
+    """(observed [R, R], record or None): :func:`observed_fraction`, and with ``images``
+    (the sensors' display images [H, W, 3]) the record of every ray that saw the open sky
+    (T_final ≥ ½) clipped: {"directions" [M, 3], "channels" [M, 3] (1 where ≥ ``clipped``),
+    "weight" [M] (T_final), "radius" [M] (the pixel's equal-area angular radius, rad)}.
+
+    Rays, not texels: a one-pixel sun stays the size of a capture pixel whatever the
+    background's resolution (with 64² texels, 3.2° wide, a texel record made it 10× the sun's
+    solid angle, and the light head reads a region's size)."""
     obs = np.zeros(resolution * resolution, np.float64)
-    clip = None if images is None else np.zeros((resolution * resolution, 3), np.float64)
+    rec = None if images is None else {"directions": [], "channels": [], "weight": [],
+                                       "radius": []}
     for k, i in enumerate(sensors):
         sensor = scene.sensors()[i]
         img = mi.render(scene, sensor=i)
         T = np.clip(1.0 - np.asarray(integ.split(img)["weight"], np.float64).reshape(-1),
                     0.0, 1.0)                                                     # [P]
         dirs, _ = camera_rays(sensor)
-        d = np.asarray(dirs, np.float64).reshape(-1, 3)                             # [P, 3]
+        grid = np.asarray(dirs, np.float64)                                         # [H, W, 3]
+        d = grid.reshape(-1, 3)                                                     # [P, 3]
         x = octa.dir_to_uv_np(d) * resolution - 0.5                               # [P, 2]
         x0 = np.floor(x).astype(np.int64)
         for dx in (0, 1):                  # every texel of the pixel's bilinear footprint
@@ -107,22 +126,57 @@ def capture_maps(scene, integ, sensors: list[int], resolution: int, images=None,
                 i = np.clip(x0[:, 0] + dx, 0, resolution - 1)
                 j = np.clip(x0[:, 1] + dy, 0, resolution - 1)
                 np.maximum.at(obs, j * resolution + i, T)
-        if clip is not None:
+        if rec is not None:
             im = np.asarray(images[k], np.float64)[..., :3].reshape(-1, 3)          # [P, 3]
             if len(im) != len(T):
                 raise ValueError(f"capture_maps: image {k} has {len(im)} pixels, its sensor "
                                  f"renders {len(T)}")
-            n = np.clip(np.floor(x + 0.5).astype(np.int64), 0, resolution - 1)    # nearest
-            hit = (im >= clipped) * T[:, None]                                    # [P, 3]
-            np.maximum.at(clip, n[:, 1] * resolution + n[:, 0], hit)
-    return (obs.reshape(resolution, resolution),
-            None if clip is None else clip.reshape(resolution, resolution, 3))
+            ch = im >= clipped                                                    # [P, 3]
+            sel = ch.any(-1) & (T >= 0.5)
+            rec["directions"].append(d[sel])
+            rec["channels"].append(ch[sel])
+            rec["weight"].append(T[sel])
+            rec["radius"].append(pixel_radius(grid).reshape(-1)[sel])
+    if rec is not None:
+        rec = {"directions": np.concatenate(rec["directions"]).reshape(-1, 3).astype(np.float32),
+               "channels": np.concatenate(rec["channels"]).reshape(-1, 3).astype(np.uint8),
+               "weight": np.concatenate(rec["weight"]).astype(np.float32),
+               "radius": np.concatenate(rec["radius"]).astype(np.float32)}
+    return obs.reshape(resolution, resolution), rec
+
+
+def splat_record(rec: dict, h: int, w: int) -> np.ndarray:
+    """[H, W, 3] equirect map of a clipped record (:func:`capture_maps`): per channel the
+    largest weight of a recorded ray whose disc (its pixel's radius) holds the pixel's
+    centre, and every ray also marks the pixel it falls in (a panorama coarser than the
+    capture still shows it). Discs are tested against the nearest recorded ray only (all
+    rays of a capture have about the same radius); ``scipy.spatial.cKDTree`` finds it."""
+    from scipy.spatial import cKDTree
+
+    from comgs_dr.core.equirect import equirect_dir_to_uv_np, equirect_directions
+    out = np.zeros((h * w, 3), np.float64)
+    d = np.asarray(rec["directions"], np.float64)
+    if len(d) == 0:
+        return out.reshape(h, w, 3)
+    val = np.asarray(rec["channels"], np.float64) * np.asarray(rec["weight"], np.float64)[:, None]
+    pix = equirect_directions(h, w).reshape(-1, 3)                               # [H*W, 3]
+    rad = np.asarray(rec["radius"], np.float64)
+    chord = 2.0 * np.sin(np.minimum(rad, np.pi) / 2.0)                           # [M]
+    dist, idx = cKDTree(d).query(pix, k=1, distance_upper_bound=float(chord.max()))
+    hit = np.isfinite(dist)
+    hit[hit] = dist[hit] <= chord[idx[hit]]
+    out[hit] = val[idx[hit]]
+    uv = np.asarray(equirect_dir_to_uv_np(d), np.float64)                           # [M, 2]
+    px = np.clip((uv[:, 0] * w).astype(np.int64), 0, w - 1)
+    py = np.clip((uv[:, 1] * h).astype(np.int64), 0, h - 1)
+    np.maximum.at(out, py * w + px, val)
+    return out.reshape(h, w, 3)
 
 
 def save(run_dir, radiance: np.ndarray, observed: np.ndarray,
-         clipped: np.ndarray | None = None) -> tuple[Path, ...]:
+         clipped: dict | None = None) -> tuple[Path, ...]:
     """Write ``background.exr`` (octahedral [R, R, 3]), ``background_observed.exr`` and,
-    when given, ``background_clipped.exr`` ([R, R, 3])."""
+    when given, the clipped record (:func:`capture_maps`) as ``background_clipped.npz``."""
     run_dir = Path(run_dir)
     a = write_exr(run_dir / FILE, np.asarray(radiance, np.float32), "octahedral")
     b = exr.write_image(run_dir / OBSERVED_FILE,
@@ -130,14 +184,33 @@ def save(run_dir, radiance: np.ndarray, observed: np.ndarray,
                         {"layout": "octahedral", "content": "observed fraction (max T_final)"})
     if clipped is None:
         return a, b
-    clipped = np.asarray(clipped, np.float32)
-    if clipped.shape != np.shape(radiance):
-        raise ValueError(f"background.save: clipped {clipped.shape} does not match the "
-                         f"background {np.shape(radiance)}")
-    c = exr.write_image(run_dir / CLIPPED_FILE, clipped,
-                        {"layout": "octahedral", "content": "clipped fraction (max T_final "
-                         f"of a ray whose pixel is >= {CLIPPED}, per channel)"})
-    return a, b, c
+    rec = _check_record(clipped, "background.save")
+    np.savez_compressed(run_dir / CLIPPED_FILE, level=np.float32(CLIPPED), **rec)
+    return a, b, run_dir / CLIPPED_FILE
+
+
+def _check_record(rec, where: str) -> dict:
+    try:
+        out = {"directions": np.asarray(rec["directions"], np.float32).reshape(-1, 3),
+               "channels": np.asarray(rec["channels"], np.uint8).reshape(-1, 3),
+               "weight": np.asarray(rec["weight"], np.float32).reshape(-1),
+               "radius": np.asarray(rec["radius"], np.float32).reshape(-1)}
+    except (KeyError, ValueError) as exc:
+        raise ValueError(f"{where}: a clipped record needs directions [M, 3], channels "
+                         f"[M, 3], weight [M] and radius [M] ({exc})") from exc
+    m = len(out["directions"])
+    if any(len(v) != m for v in out.values()):
+        raise ValueError(f"{where}: clipped record arrays differ in length: "
+                         f"{ {k: len(v) for k, v in out.items()} }")
+    bad = sum(int((~np.isfinite(v)).sum()) for k, v in out.items() if k != "channels")
+    if bad:
+        raise ValueError(f"{where}: the clipped record holds {bad} non-finite values")
+    if m and (out["radius"].min() <= 0 or out["radius"].max() > np.pi):
+        raise ValueError(f"{where}: clipped record radii must be in (0, pi] rad")
+    n = np.linalg.norm(out["directions"], axis=1)
+    if m and np.abs(n - 1.0).max() > 1e-3:
+        raise ValueError(f"{where}: clipped record directions must be unit vectors")
+    return out
 
 
 def load(run_dir) -> tuple[np.ndarray, np.ndarray] | None:
@@ -164,20 +237,11 @@ def load(run_dir) -> tuple[np.ndarray, np.ndarray] | None:
     return np.maximum(rad, 0.0), np.clip(obs, 0.0, 1.0)
 
 
-def load_clipped(run_dir) -> np.ndarray | None:
-    """The clipped record [R, R, 3] in [0, 1] of a run folder (:func:`capture_maps`), or None
-    for runs written before it existed. ValueError for non-finite values or a shape that
-    does not match ``background.exr``."""
-    run_dir = Path(run_dir)
-    if not (run_dir / CLIPPED_FILE).is_file():
+def load_clipped(run_dir) -> dict | None:
+    """The clipped record of a run folder (:func:`capture_maps`), or None for runs written
+    before it existed. ValueError for a malformed record."""
+    path = Path(run_dir) / CLIPPED_FILE
+    if not path.is_file():
         return None
-    c = np.asarray(exr.read_image(run_dir / CLIPPED_FILE), np.float64)[..., :3]
-    if not np.isfinite(c).all():
-        raise ValueError(f"{run_dir / CLIPPED_FILE} holds {int((~np.isfinite(c)).sum())} "
-                         "non-finite values")
-    if (run_dir / FILE).is_file():
-        rad = read_envmap_file(run_dir / FILE)[0]
-        if c.shape != rad.shape:
-            raise ValueError(f"{run_dir / CLIPPED_FILE}: shape {c.shape} does not match the "
-                             f"background's {rad.shape}")
-    return np.clip(c, 0.0, 1.0)
+    with np.load(path) as z:
+        return _check_record({k: z[k] for k in z.files if k != "level"}, str(path))
