@@ -22,7 +22,8 @@ traced from procedural surfel scenes), with a random rotation about Z:
 Methods: ``net`` (the completion net; observed lights re-pasted as the paper re-adds them,
 ``completion.blend_observed``), ``net+lights`` (plus the light head's lobes for lights clipped
 at EV 0, ``lighting.lights``), ``net+sh`` / ``net+sh+lights`` (the net's hole averaged with
-the SH fill, ``backends.BlendBackend``: what ``estimate-light`` uses), the fills ``mean``,
+the SH fill indoors, the net alone outdoors, ``backends.BlendBackend`` with
+``backends.LABEL_WEIGHTS``: what ``estimate-light`` uses), the fills ``mean``,
 ``push_pull``, ``sh`` (the baselines), ``push_pull+lights`` (ablation: the head on a baseline
 fill) and ``diffusers`` when ``--diffusers DIR`` names a local model. "Ours" is
 ``net+sh+lights`` when a head is found.
@@ -167,7 +168,8 @@ def make_methods(weights, head_path=None, diffusers=None) -> tuple[dict, object]
         methods["net"] = (net, False)
         if head is not None:
             methods["net+lights"] = (net, True)
-        blend = backends.BlendBackend([net, backends.FillBackend("sh")])
+        blend = backends.BlendBackend([net, backends.FillBackend("sh")],      # as estimate-light
+                                      label_weights=backends.LABEL_WEIGHTS)
         methods["net+sh"] = (blend, False)
         if head is not None:
             methods["net+sh+lights"] = (blend, True)

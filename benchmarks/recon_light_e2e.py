@@ -91,7 +91,8 @@ def main(argv=None):
         maps = [p for p in sorted(hd.glob("*")) if p.stem in pano_data.HELD_OUT
                 and pano_data.label_of(p.stem) == "outdoor"]
     net = backends.load_network_backend()
-    be = {"net": net, "net+sh": backends.BlendBackend([net, backends.FillBackend("sh")]),
+    be = {"net": net, "net+sh": backends.BlendBackend([net, backends.FillBackend("sh")],
+                                                      label_weights=backends.LABEL_WEIGHTS),
           "push_pull": backends.FillBackend("push_pull")}
     methods = {"net+sh+lights": ("net+sh", "default"), "net+lights": ("net", "default"),
                "net": ("net", "none"), "push_pull": ("push_pull", "none"),

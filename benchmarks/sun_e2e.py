@@ -132,7 +132,8 @@ def main(argv=None):
                "net+sh+lights": ("net+sh", a.light_head),
                "push_pull": ("push_pull", "none"), "push_pull+lights": ("push_pull", a.light_head)}
     be = {"net": backends.load_network_backend(), "push_pull": backends.FillBackend("push_pull")}
-    be["net+sh"] = backends.BlendBackend([be["net"], backends.FillBackend("sh")])
+    be["net+sh"] = backends.BlendBackend([be["net"], backends.FillBackend("sh")],
+                                         label_weights=backends.LABEL_WEIGHTS)
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; trace {2 * a.res}x{a.res}, "
           f"dome {2 * a.dome_res}x{a.dome_res}, sky seen: ±{a.wedge / 2:g}° around the sun up "
           f"to {a.max_elev:g}°\n")

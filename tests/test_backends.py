@@ -326,3 +326,40 @@ def test_blend_backend_keeps_the_first_backends_lights_in_the_hole():
     assert (f_half[lamp] < 11.0).all()                                   # ½ lamp + ½ SH
     rest = (mask < 0.5) & ~lamp
     np.testing.assert_array_equal(f_kept[rest], f_half[rest])
+
+
+def test_blend_backend_label_weights_run_only_the_members_needed():
+    """``label_weights`` replaces the weights for that label; a member of weight 0 is not
+    run, and the first member alone gives its own brackets."""
+    calls = []
+
+    class Count(backends.FillBackend):
+        def complete(self, *a, **k):
+            calls.append(self.kind)
+            return super().complete(*a, **k)
+
+    a, b = Count("mean"), Count("sh")
+    rng = np.random.default_rng(0)
+    rgb = rng.uniform(0.1, 0.9, (8, 16, 3)).astype(np.float32)
+    mask = np.zeros((8, 16), np.float32)
+    mask[:, :9] = 1
+    blend = backends.BlendBackend([a, b], label_weights={"outdoor": (1.0, 0.0)})
+    np.testing.assert_array_equal(blend.weights_for("outdoor"), [1.0, 0.0])
+    np.testing.assert_array_equal(blend.weights_for(0), [1.0, 0.0])       # outdoor
+    np.testing.assert_array_equal(blend.weights_for(1), [0.5, 0.5])       # indoor
+    out = blend.complete(rgb, None, mask, label="outdoor")
+    assert calls == ["mean"]
+    ref = a.complete(rgb, None, mask, label="outdoor")
+    for e in ref:
+        np.testing.assert_array_equal(out[e], ref[e])
+    calls.clear()
+    mixed = blend.complete(rgb, None, mask, label="indoor")
+    assert calls == ["mean", "sh"]
+    assert not np.array_equal(mixed[0.0], out[0.0])
+    with pytest.raises(ValueError, match="label"):
+        backends.BlendBackend([a, b], label_weights={"outdoor": (0.0, 0.0)})
+    with pytest.raises(ValueError, match="unknown label"):
+        backends.BlendBackend([a, b], label_weights={"space": (1.0, 0.0)})
+    d = backends.default_backend()
+    np.testing.assert_array_equal(d.weights_for("outdoor"), [1.0, 0.0])
+    np.testing.assert_array_equal(d.weights_for("indoor"), [0.5, 0.5])

@@ -32,7 +32,8 @@ def _add_estimate_light(sub) -> None:
                    help=f"octahedral map side (default {d.oct_res})")
     p.add_argument("--backend", choices=("net+sh", "net", "mean", "push_pull", "sh", "diffusers"),
                    default="net+sh", help="completion backend (default net+sh: the shipped "
-                   "weights, their hole averaged with the SH fill; net: the weights alone)")
+                   "weights, their hole averaged with the SH fill, outdoors the weights alone; net: the "
+                   "weights alone)")
     p.add_argument("--weights", metavar="PATH", help="completion-net checkpoint (backend net)")
     p.add_argument("--net-resolution", type=int, nargs=2, metavar=("H", "W"),
                    help="network input size (default: the size the weights were trained at)")
@@ -51,7 +52,7 @@ def _estimate_backend(args):
         res = tuple(args.net_resolution) if args.net_resolution else None
         net = backends.load_network_backend(args.weights, res)
         return net if args.backend == "net" else backends.BlendBackend(
-            [net, backends.FillBackend("sh")])
+            [net, backends.FillBackend("sh")], label_weights=backends.LABEL_WEIGHTS)
     if args.backend == "diffusers":
         if not args.diffusers_dir:
             raise ValueError("--backend diffusers needs --diffusers-dir DIR")
