@@ -56,7 +56,7 @@ def build_run(map_path: Path, out: Path, a) -> tuple[Path, np.ndarray, float]:
         write_run_info(run, ds / "scene", "scene", 1, False)
         train_radiance(load_dataset(ds / "scene"), run, RadianceConfig.from_preset(
             "scene", iterations=a.iterations, eval_every=a.iterations, eval_views=2,
-            seed=a.seed, background="env", env_resolution=128), progress=False)
+            seed=a.seed, background="env", env_resolution=a.env_resolution), progress=False)
     tr = json.loads((ds / "transform.json").read_text())
     m = np.array(next(iter(tr.values()))["transform"], np.float64).reshape(4, 4)
     return run, m[:3, 3], scale
@@ -72,8 +72,11 @@ def main(argv=None):
     ap.add_argument("--sky-views", type=int, default=12)
     ap.add_argument("--spp", type=int, default=32)
     ap.add_argument("--iterations", type=int, default=800)
+    ap.add_argument("--env-resolution", type=int, default=128, help="step 1's sky texels "
+                    "per side (the demo's 128; reconstruct's default is 64)")
     ap.add_argument("--exposure", type=float, default=1.0, help="times the auto exposure")
-    ap.add_argument("--trace-res", type=int, default=256, help="trace height (width 2x)")
+    ap.add_argument("--trace-res", type=int, default=512, help="trace height (width 2x; "
+                    "512: estimate-light's default 1024x512)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-sun-view", action="store_true", help="do not aim the first sky "
                     "view at the sun (a low sun may then be missed by every view)")
