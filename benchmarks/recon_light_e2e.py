@@ -13,6 +13,11 @@ For each map (default: the held-out outdoor shared maps, ``pano_data.HELD_OUT``)
    issue's E(facing the true dominant light) / E(facing up), the dominant light's angle
    and the total power ratio.
 
+Methods: ``default`` (what ``estimate-light`` does: ``backends.default_backend`` and the light
+head), ``net+lights``, ``net``, ``push_pull`` and ``push_pull+lights``. ``recon_light_e2e.png``
+in ``--out`` shows, per map, the placement's input with the recorded clipped rays, the true
+map and the default's estimate.
+
 This is the check ``sun_e2e.py`` cannot make: its scene is a perfect reconstruction, here
 the sun goes through LDR captures and step 1's optimisation (blur, a learnt background).
 
@@ -62,6 +67,38 @@ def build_run(map_path: Path, out: Path, a) -> tuple[Path, np.ndarray, float]:
     return run, m[:3, 3], scale
 
 
+def save_figure(panels: list, path: Path) -> Path:
+    """One row per map: the placement's EV-0 input (recorded clipped rays in red), the true
+    map and the default's estimate, both at the true map's exposure (tone-mapped)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from comgs_dr.core.colorspace import LUMA, tonemap
+    from comgs_dr.lighting.hdr import area_resize_equirect
+    fig, axes = plt.subplots(len(panels), 3, figsize=(12, 2.2 * len(panels)), squeeze=False)
+    for row, (name, rgb, clip, truth, est, err) in zip(axes, panels):
+        h, w = rgb.shape[:2]
+        t = area_resize_equirect(truth, h, w)
+        k = 0.5 / max(float(np.percentile(t @ LUMA, 90)), 1e-6)
+        inp = np.asarray(rgb, np.float64).copy()
+        if clip is not None:
+            inp[clip.max(-1) >= 0.5] = [1.0, 0.0, 0.0]
+        for ax, img, title in ((row[0], inp, f"{name}: input at the placement (red: "
+                                "recorded clipped rays)"),
+                               (row[1], tonemap(np.clip(t * k, 0, None)), "true map"),
+                               (row[2], tonemap(np.clip(est * k, 0, None)),
+                                f"estimate (default): E ratio {100 * err:+.0f} %")):
+            ax.imshow(np.clip(img, 0, 1))
+            ax.set_title(title, fontsize=8)
+            ax.axis("off")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--maps", nargs="*", default=None, help="equirect maps (default: the "
@@ -87,6 +124,7 @@ def main(argv=None):
     from comgs_dr.eval.lighting_metrics import compare_maps
     from comgs_dr.lighting import backends, envmap, pano_data
     from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light
+    from comgs_dr.train import background as bgenv
     if a.maps:
         maps = [Path(m) for m in a.maps]
     else:
@@ -97,7 +135,7 @@ def main(argv=None):
     be = {"net": net, "net+sh": backends.BlendBackend([net, backends.FillBackend("sh")],
                                                       label_weights=backends.LABEL_WEIGHTS),
           "push_pull": backends.FillBackend("push_pull")}
-    methods = {"net+sh+lights": ("net+sh", "default"), "net+lights": ("net", "default"),
+    methods = {"default": ("net+sh", "default"), "net+lights": ("net", "default"),
                "net": ("net", "none"), "push_pull": ("push_pull", "none"),
                "push_pull+lights": ("push_pull", "default")}
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; capture {a.res} px, "
@@ -106,7 +144,7 @@ def main(argv=None):
     print("| map | method | coverage | light angle ° | E_sun/E_up est | E_sun/E_up true | "
           "ratio error | power est/true | s |")
     print("|---|---|---|---|---|---|---|---|---|", flush=True)
-    rows = []
+    rows, panels = [], []
     for p in maps:
         t0 = time.perf_counter()
         run, pos, scale = build_run(p, Path(a.out) / p.stem, a)
@@ -123,11 +161,15 @@ def main(argv=None):
             err = est_r / gt_r - 1.0
             rows.append({"map": p.stem, "method": name, "ratio_err": err,
                          "angle": m.get("light_angle_deg"), "power": m["power_ratio_est_gt"]})
+            if name == "default":
+                rec = bgenv.load_clipped(run)
+                clip = None if rec is None else bgenv.splat_record(rec, *r["hdr"].shape[:2])
+                panels.append((p.stem, r["input"]["rgb"], clip, truth, r["hdr"], err))
             print(f"| {p.stem} | {name} | {100 * r['coverage']:.0f} % | "
                   f"{m.get('light_angle_deg', float('nan')):.1f} | {est_r:.2f} | {gt_r:.2f} | "
                   f"{100 * err:+.0f} % | {m['power_ratio_est_gt']:.2f} | {dt:.1f} |", flush=True)
         print(f"<!-- {p.stem}: dataset + step 1 {t_build:.0f} s -->", flush=True)
-    print()
+    print(f"\nfigure: {save_figure(panels, Path(a.out) / 'recon_light_e2e.png')}")
     for name in methods:
         e = [abs(r["ratio_err"]) for r in rows if r["method"] == name]
         print(f"{name}: mean |ratio error| {100 * np.mean(e):.0f} %, within 25 %: "
