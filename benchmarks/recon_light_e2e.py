@@ -120,30 +120,16 @@ def main(argv=None):
     a = ap.parse_args(argv)
     import comgs_dr
     comgs_dr.set_variant("llvm_ad_rgb")
-    from comgs_dr.data.synthetic import shared_data_dir
-    from comgs_dr.eval.lighting_metrics import compare_maps
-    from comgs_dr.lighting import backends, envmap, pano_data
+    from comgs_dr.lighting import envmap
     from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light
     from comgs_dr.train import background as bgenv
-    if a.maps:
-        maps = [Path(m) for m in a.maps]
-    else:
-        hd = shared_data_dir() / "hdri"
-        maps = [p for p in sorted(hd.glob("*")) if p.stem in pano_data.HELD_OUT
-                and pano_data.label_of(p.stem) == "outdoor"]
-    net = backends.load_network_backend()
-    be = {"net": net, "net+sh": backends.BlendBackend([net, backends.FillBackend("sh")],
-                                                      label_weights=backends.LABEL_WEIGHTS),
-          "push_pull": backends.FillBackend("push_pull")}
-    methods = {"default": ("net+sh", "default"), "net+lights": ("net", "default"),
-               "net": ("net", "none"), "push_pull": ("push_pull", "none"),
-               "push_pull+lights": ("push_pull", "default")}
+    from sun_e2e import TABLE_HEAD, e2e_methods, outdoor_maps, print_summary, score
+    maps = outdoor_maps(a.maps)
+    methods, be = e2e_methods()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; capture {a.res} px, "
           f"{a.views}+{a.sky_views} views, step 1 {a.iterations} it; trace "
           f"{2 * a.trace_res}x{a.trace_res}\n", flush=True)
-    print("| map | method | coverage | light angle ° | E_sun/E_up est | E_sun/E_up true | "
-          "ratio error | power est/true | s |")
-    print("|---|---|---|---|---|---|---|---|---|", flush=True)
+    print(TABLE_HEAD, flush=True)
     rows, panels = [], []
     for p in maps:
         t0 = time.perf_counter()
@@ -156,24 +142,16 @@ def main(argv=None):
                                  label="outdoor", light_head=head)
             r = estimate_light(str(run / "point_cloud.ply"), pos, cfg, be[kind])
             dt = time.perf_counter() - t0
-            m = compare_maps(r["hdr"], truth)
-            est_r, gt_r = m["light_up_irradiance_ratio_est"], m["light_up_irradiance_ratio_gt"]
-            err = est_r / gt_r - 1.0
-            rows.append({"map": p.stem, "method": name, "ratio_err": err,
-                         "angle": m.get("light_angle_deg"), "power": m["power_ratio_est_gt"]})
+            row = score(p.stem, name, r, truth, dt)
+            rows.append(row)
             if name == "default":
                 rec = bgenv.load_clipped(run)
                 clip = None if rec is None else bgenv.splat_record(rec, *r["hdr"].shape[:2])
-                panels.append((p.stem, r["input"]["rgb"], clip, truth, r["hdr"], err))
-            print(f"| {p.stem} | {name} | {100 * r['coverage']:.0f} % | "
-                  f"{m.get('light_angle_deg', float('nan')):.1f} | {est_r:.2f} | {gt_r:.2f} | "
-                  f"{100 * err:+.0f} % | {m['power_ratio_est_gt']:.2f} | {dt:.1f} |", flush=True)
+                panels.append((p.stem, r["input"]["rgb"], clip, truth, r["hdr"],
+                               row["ratio_err"]))
         print(f"<!-- {p.stem}: dataset + step 1 {t_build:.0f} s -->", flush=True)
     print(f"\nfigure: {save_figure(panels, Path(a.out) / 'recon_light_e2e.png')}")
-    for name in methods:
-        e = [abs(r["ratio_err"]) for r in rows if r["method"] == name]
-        print(f"{name}: mean |ratio error| {100 * np.mean(e):.0f} %, within 25 %: "
-              f"{sum(x <= 0.25 for x in e)}/{len(e)}")
+    print_summary(rows, methods)
     return rows
 
 

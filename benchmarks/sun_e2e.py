@@ -96,6 +96,55 @@ def build_scene(env, sun_dir, dome_res: int, wedge_deg: float, max_elev_deg: flo
     return scene, truth
 
 
+def outdoor_maps(paths) -> list[Path]:
+    """``paths`` as Paths, or (None/empty) the held-out outdoor shared maps."""
+    if paths:
+        return [Path(m) for m in paths]
+    from comgs_dr.data.synthetic import shared_data_dir
+    from comgs_dr.lighting import pano_data
+    return [p for p in sorted((shared_data_dir() / "hdri").glob("*"))
+            if p.stem in pano_data.HELD_OUT and pano_data.label_of(p.stem) == "outdoor"]
+
+
+def e2e_methods(head: str = "default") -> tuple[dict, dict]:
+    """({method: (backend key, light head)}, {backend key: backend}): ``default`` is
+    estimate-light's (``backends.default_backend`` + the head); the net and push_pull with and
+    without the head."""
+    from comgs_dr.lighting import backends
+    net = backends.load_network_backend()
+    be = {"net": net, "push_pull": backends.FillBackend("push_pull"),
+          "default": backends.BlendBackend([net, backends.FillBackend("sh")],
+                                           label_weights=backends.LABEL_WEIGHTS)}
+    methods = {"default": ("default", head), "net+lights": ("net", head), "net": ("net", "none"),
+               "push_pull": ("push_pull", "none"), "push_pull+lights": ("push_pull", head)}
+    return methods, be
+
+
+TABLE_HEAD = ("| map | method | coverage | light angle ° | E_sun/E_up est | E_sun/E_up true | "
+              "ratio error | power est/true | s |\n|---|---|---|---|---|---|---|---|---|")
+
+
+def score(stem: str, name: str, r: dict, truth, seconds: float) -> dict:
+    """Score an ``estimate_light`` result against the true map, print its table row and
+    return {map, method, ratio_err, angle, power}."""
+    from comgs_dr.eval.lighting_metrics import compare_maps
+    m = compare_maps(r["hdr"], truth)
+    est_r, gt_r = m["light_up_irradiance_ratio_est"], m["light_up_irradiance_ratio_gt"]
+    err = est_r / gt_r - 1.0
+    print(f"| {stem} | {name} | {100 * r['coverage']:.0f} % | "
+          f"{m.get('light_angle_deg', float('nan')):.1f} | {est_r:.2f} | {gt_r:.2f} | "
+          f"{100 * err:+.0f} % | {m['power_ratio_est_gt']:.2f} | {seconds:.1f} |", flush=True)
+    return {"map": stem, "method": name, "ratio_err": err, "angle": m.get("light_angle_deg"),
+            "power": m["power_ratio_est_gt"]}
+
+
+def print_summary(rows: list, methods) -> None:
+    for name in methods:
+        e = [abs(r["ratio_err"]) for r in rows if r["method"] == name]
+        print(f"{name}: mean |ratio error| {100 * np.mean(e):.0f} %, within 25 %: "
+              f"{sum(x <= 0.25 for x in e)}/{len(e)}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--maps", nargs="*", default=None, help="equirect maps (default: the "
@@ -110,17 +159,10 @@ def main(argv=None):
     a = ap.parse_args(argv)
     import comgs_dr
     comgs_dr.set_variant("llvm_ad_rgb")
-    from comgs_dr.data.synthetic import shared_data_dir
-    from comgs_dr.eval.lighting_metrics import compare_maps
-    from comgs_dr.lighting import backends, pano_data
+    from comgs_dr.lighting import pano_data
     from comgs_dr.lighting.hdr import extract_lights
     from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light
-    if a.maps:
-        maps = [Path(m) for m in a.maps]
-    else:
-        hd = shared_data_dir() / "hdri"
-        maps = [p for p in sorted(hd.glob("*")) if p.stem in pano_data.HELD_OUT
-                and pano_data.label_of(p.stem) == "outdoor"]
+    maps = outdoor_maps(a.maps)
     cases = [(p.stem, pano_data.load_map(p, 256, 512).astype(np.float64)) for p in maps]
     rng = np.random.default_rng(12345)
     while len(cases) < len(maps) + a.skies:
@@ -128,18 +170,11 @@ def main(argv=None):
         sun = extract_lights(sky, k=1)
         if sun and sun[0]["direction"][2] > np.sin(np.radians(8)):
             cases.append((f"sunsky_{len(cases) - len(maps)}", sky))
-    methods = {"net": ("net", "none"), "net+lights": ("net", a.light_head),
-               "net+sh+lights": ("net+sh", a.light_head),
-               "push_pull": ("push_pull", "none"), "push_pull+lights": ("push_pull", a.light_head)}
-    be = {"net": backends.load_network_backend(), "push_pull": backends.FillBackend("push_pull")}
-    be["net+sh"] = backends.BlendBackend([be["net"], backends.FillBackend("sh")],
-                                         label_weights=backends.LABEL_WEIGHTS)
+    methods, be = e2e_methods(a.light_head)
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; trace {2 * a.res}x{a.res}, "
           f"dome {2 * a.dome_res}x{a.dome_res}, sky seen: ±{a.wedge / 2:g}° around the sun up "
           f"to {a.max_elev:g}°\n")
-    print("| map | method | coverage | light angle ° | E_sun/E_up est | E_sun/E_up true | "
-          "ratio error | power est/true | s |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print(TABLE_HEAD)
     rows = []
     for stem, env in cases:
         env = env * pano_data.auto_exposure(env)
@@ -151,19 +186,9 @@ def main(argv=None):
                                  light_head=head)
             r = estimate_light(scene, [0.0, 0.0, 1.0], cfg, be[kind])
             dt = time.perf_counter() - t0
-            m = compare_maps(r["hdr"], truth)
-            est_r, gt_r = m["light_up_irradiance_ratio_est"], m["light_up_irradiance_ratio_gt"]
-            err = est_r / gt_r - 1.0
-            rows.append({"map": stem, "method": name, "ratio_err": err,
-                         "angle": m.get("light_angle_deg"), "power": m["power_ratio_est_gt"]})
-            print(f"| {stem} | {name} | {100 * r['coverage']:.0f} % | "
-                  f"{m.get('light_angle_deg', float('nan')):.1f} | {est_r:.2f} | {gt_r:.2f} | "
-                  f"{100 * err:+.0f} % | {m['power_ratio_est_gt']:.2f} | {dt:.1f} |")
+            rows.append(score(stem, name, r, truth, dt))
     print()
-    for name in methods:
-        e = [abs(r["ratio_err"]) for r in rows if r["method"] == name]
-        print(f"{name}: mean |ratio error| {100 * np.mean(e):.0f} %, within 25 %: "
-              f"{sum(x <= 0.25 for x in e)}/{len(e)}")
+    print_summary(rows, methods)
     return rows
 
 
