@@ -314,6 +314,14 @@ def add_background(trace: dict, run_dir, clipped_max_texels: float = np.inf) -> 
     out["meta"]["background"] = str(run_dir)
     out["meta"]["background_clipped"] = None if clipped is None else int(
         ((clip_eq.max(-1) >= 0.5) & (obs_eq > 0)).sum())
+    if clipped is None:
+        log.info("estimate_light: %s has no %s (a step-1 run from before it existed): a sun "
+                 "the capture saw clipped may read below white; re-run step 1 to record it",
+                 run_dir, bgenv.CLIPPED_FILE)
+    else:
+        log.info("estimate_light: %d panorama pixels drawn at white from %d clipped capture "
+                 "rays (%s)", out["meta"]["background_clipped"], len(clipped["directions"]),
+                 bgenv.CLIPPED_FILE)
     return out
 
 
