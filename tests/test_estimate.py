@@ -305,3 +305,18 @@ def test_small_parts_keeps_only_small_clipped_components():
     assert out[12:14, [0, w - 1]].max() == 0
     assert small_parts(c, np.inf) is c
     assert small_parts(np.zeros((h, w, 3)), 1.0).max() == 0
+
+
+def test_head_factor_matches_the_capture_pixel():
+    """The head reads the panorama in blocks about as wide as the capture's pixels (only
+    when step 1's clipped record was drawn), a power of 2 that divides the panorama."""
+    from comgs_dr.stages.estimate_light import head_factor
+    def trace(w, side_deg):
+        meta = {} if side_deg is None else {"clipped_pixel_rad": np.radians(side_deg)}
+        return {"alpha": np.zeros((w // 2, w)), "meta": meta}
+    assert head_factor(trace(1024, None)) == 1
+    assert head_factor(trace(1024, 0.65)) == 2                   # 0.35° pixels
+    assert head_factor(trace(512, 0.65)) == 1
+    assert head_factor(trace(1024, 0.1)) == 1                    # a finer capture
+    assert head_factor(trace(1024, 1.4)) == 4
+    assert head_factor(trace(100, 14.4)) == 2                    # 4 does not divide 50

@@ -303,3 +303,29 @@ def test_blur_ldr_keeps_flat_regions_and_the_mask_and_softens_a_sun():
     white = lambda x: (x.min(-1) >= L.SAT).sum()                               # noqa: E731
     clipped = lambda x: (x.max(-1) >= L.SAT).sum()                             # noqa: E731
     assert white(out) / max(clipped(out), 1) <= white(ldr) / max(clipped(ldr), 1)
+
+
+def test_downsample_clipped_keeps_a_one_pixel_light_clipped():
+    """Blocks are averaged, except that a block holding an observed clipped pixel takes its
+    brightest clipped pixel and counts as observed; f = 1 is the identity; f must divide."""
+    rng = np.random.default_rng(0)
+    ldr = rng.uniform(0.1, 0.6, (8, 16, 3))
+    mask = np.ones((8, 16))
+    mask[:, :4] = 0.0
+    ldr[2, 9] = [1.0, 1.0, 0.7]                                   # a sun pixel
+    ldr[5, 1] = [1.0, 1.0, 1.0]                                   # clipped but unobserved
+    out, m = L.downsample_clipped(ldr, mask, 2)
+    assert out.shape == (4, 8, 3) and m.shape == (4, 8)
+    np.testing.assert_allclose(out[1, 4], [1.0, 1.0, 0.7])
+    assert m[1, 4] == 1.0
+    np.testing.assert_allclose(out[3, 6], ldr[6:8, 12:14].reshape(-1, 3).mean(0))
+    assert out[2, 0].max() < 1.0 and m[2, 0] == 0.0              # unobserved: averaged
+    assert len(L.clipped_regions(out, m)) == 0                   # (1,1,0.7): no white core
+    ldr[2, 8] = 1.0
+    out, m = L.downsample_clipped(ldr, mask, 2)
+    np.testing.assert_allclose(out[1, 4], 1.0)                    # the brightest one
+    assert len(L.clipped_regions(out, m)) == 1
+    same, m1 = L.downsample_clipped(ldr, mask, 1)
+    np.testing.assert_array_equal(same, np.clip(ldr, 0, 1))
+    with pytest.raises(ValueError, match="divide"):
+        L.downsample_clipped(ldr, mask, 3)

@@ -56,7 +56,7 @@ from comgs_dr.lighting.hdr import label_equirect
 
 __all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_regions",
            "FEATURES", "region_features", "LightHead", "HeadEnsemble", "save_head", "load_head",
-           "DEFAULT_HEAD", "predict_lobes", "add_lights", "SAT"]
+           "DEFAULT_HEAD", "predict_lobes", "downsample_clipped", "add_lights", "SAT"]
 
 SAT = 0.98                 # EV-0 max channel at/above which a pixel counts as clipped
 MAX_LOG_GAIN = 25.0       # P_true / P_seen ≤ e^25 ≈ 7e10 (a real sun at EV 0: ~1e5)
@@ -323,6 +323,32 @@ def predict_lobes(ldr, mask, head: LightHead, label: int = 2, sat: float = SAT,
                     "luminance_power": float(g * (r.seen_power @ LUMA)),
                     "colour": ring_colour(ldr, mask, r, sat), "region": r.pixels})
     return out
+
+
+def downsample_clipped(ldr, mask, f: int, sat: float = SAT):
+    """(ldr [H/f, W/f, 3], mask [H/f, W/f]) of an EV-0 panorama in f×f blocks: the block
+    mean, except that a block with an observed clipped pixel (max channel ≥ ``sat``) takes
+    that block's brightest clipped pixel (largest channel sum) and counts as observed, as a
+    coarser capture's pixel over a light would be clipped. For running the head at the
+    resolution at which clipping is known (``estimate_light``). ValueError if f does not
+    divide H and W."""
+    ldr, seen = _check(ldr, mask)
+    f = int(f)
+    h, w = seen.shape
+    if f < 1 or h % f or w % f:
+        raise ValueError(f"downsample_clipped: factor {f} must be >= 1 and divide {h}x{w}")
+    if f == 1:
+        return ldr, seen.astype(np.float64)
+    hb, wb = h // f, w // f
+    blk = ldr.reshape(hb, f, wb, f, 3).transpose(0, 2, 1, 3, 4).reshape(hb, wb, f * f, 3)
+    sb = seen.reshape(hb, f, wb, f).transpose(0, 2, 1, 3).reshape(hb, wb, f * f)
+    clip = sb & (blk.max(-1) >= sat)                                       # [hb, wb, f²]
+    score = np.where(clip, blk.sum(-1), -1.0)
+    pick = np.take_along_axis(blk, score.argmax(-1)[..., None, None], 2)[:, :, 0]
+    has = clip.any(-1)
+    out = np.where(has[..., None], pick, blk.mean(2))
+    m = np.where(has, 1.0, sb.mean(-1))
+    return out, m
 
 
 def _match_excess(out, reg, lum, dw, target: float) -> float:

@@ -250,7 +250,11 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     head = _load_head(cfg.light_head)
     lobes = []
     if head is not None:
-        pred = light_head.predict_lobes(rgb, mask, head, LABELS[cfg.label])
+        f = head_factor(trace)
+        pred = light_head.predict_lobes(*light_head.downsample_clipped(rgb, mask, f), head,
+                                        LABELS[cfg.label])
+        for lb in pred:                                      # regions back at full size
+            lb["region"] = np.repeat(np.repeat(lb["region"], f, 0), f, 1)
         radiance, lobes = light_head.add_lights(radiance, pred)
         radiance = radiance.astype(np.float32)
     timings["light_head"] = time.perf_counter() - t
@@ -314,6 +318,8 @@ def add_background(trace: dict, run_dir, clipped_max_texels: float = np.inf) -> 
     out["meta"]["background"] = str(run_dir)
     out["meta"]["background_clipped"] = None if clipped is None else int(
         ((clip_eq.max(-1) >= 0.5) & (obs_eq > 0)).sum())
+    if clipped is not None and out["meta"]["background_clipped"]:
+        out["meta"]["clipped_pixel_rad"] = float(np.median(clipped["radius"]) * np.sqrt(np.pi))
     if clipped is None:
         log.info("estimate_light: %s has no %s (a step-1 run from before it existed): a sun "
                  "the capture saw clipped may read below white; re-run step 1 to record it",
@@ -323,6 +329,25 @@ def add_background(trace: dict, run_dir, clipped_max_texels: float = np.inf) -> 
                  "rays (%s)", out["meta"]["background_clipped"], len(clipped["directions"]),
                  bgenv.CLIPPED_FILE)
     return out
+
+
+def head_factor(trace: dict) -> int:
+    """Block size f (a power of 2 dividing the panorama) at which the light head reads the
+    panorama: 1, unless step 1's clipped record (``add_background``) drew its rays. The record
+    knows clipping only at the capture's pixel size, and the head reads a region's size in
+    panorama pixels (trained on panoramas where a sun is 1–4 pixels), so the panorama is
+    coarsened until its pixels are about the capture's (``lights.downsample_clipped``).
+    ``benchmarks/recon_light_e2e.py``, 64-px captures (0.65° pixels): at 1024×512 the sunrise
+    sun's 0.003 sr region is 83 pixels and the head predicted 36–41× where the truth is 62×;
+    at 512×256 (20 pixels) 55× of 86×."""
+    side = trace["meta"].get("clipped_pixel_rad")
+    h, w = trace["alpha"].shape
+    if not side or not np.isfinite(side):
+        return 1
+    f = 2 ** max(0, int(round(np.log2(side / (2 * np.pi / w)))))
+    while f > 1 and (h % f or w % f):
+        f //= 2
+    return f
 
 
 def small_parts(clipped: np.ndarray, max_sr: float) -> np.ndarray:
