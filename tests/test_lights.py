@@ -305,27 +305,29 @@ def test_blur_ldr_keeps_flat_regions_and_the_mask_and_softens_a_sun():
     assert white(out) / max(clipped(out), 1) <= white(ldr) / max(clipped(ldr), 1)
 
 
-def test_downsample_clipped_keeps_a_one_pixel_light_clipped():
-    """Blocks are averaged, except that a block holding an observed clipped pixel takes its
+def test_downsample_clipped_keeps_lights_that_fill_their_block():
+    """Blocks are averaged, except that a block at least ¾ clipped (observed) takes its
     brightest clipped pixel and counts as observed; f = 1 is the identity; f must divide."""
     rng = np.random.default_rng(0)
     ldr = rng.uniform(0.1, 0.6, (8, 16, 3))
     mask = np.ones((8, 16))
     mask[:, :4] = 0.0
-    ldr[2, 9] = [1.0, 1.0, 0.7]                                   # a sun pixel
-    ldr[5, 1] = [1.0, 1.0, 1.0]                                   # clipped but unobserved
+    ldr[2:4, 8:10] = [1.0, 1.0, 0.7]                              # a sun filling a block
+    ldr[3, 9] = [0.5, 0.5, 0.5]                                   # ... all but one pixel
+    ldr[2, 8] = [1.0, 1.0, 1.0]                                   # its brightest pixel
+    ldr[6, 12] = 1.0                                              # a lone clipped pixel
+    ldr[4:6, 0:2] = 1.0                                           # clipped but unobserved
     out, m = L.downsample_clipped(ldr, mask, 2)
     assert out.shape == (4, 8, 3) and m.shape == (4, 8)
-    np.testing.assert_allclose(out[1, 4], [1.0, 1.0, 0.7])
+    np.testing.assert_allclose(out[1, 4], 1.0)
     assert m[1, 4] == 1.0
     np.testing.assert_allclose(out[3, 6], ldr[6:8, 12:14].reshape(-1, 3).mean(0))
-    assert out[2, 0].max() < 1.0 and m[2, 0] == 0.0              # unobserved: averaged
-    assert len(L.clipped_regions(out, m)) == 0                   # (1,1,0.7): no white core
-    ldr[2, 8] = 1.0
-    out, m = L.downsample_clipped(ldr, mask, 2)
-    np.testing.assert_allclose(out[1, 4], 1.0)                    # the brightest one
-    assert len(L.clipped_regions(out, m)) == 1
-    same, m1 = L.downsample_clipped(ldr, mask, 1)
+    assert out[2, 0].max() == 1.0 and m[2, 0] == 0.0              # unobserved: averaged
+    regs = L.clipped_regions(out, m)
+    assert len(regs) == 1 and regs[0].pixels[1, 4]
+    any_px, _ = L.downsample_clipped(ldr, mask, 2, fraction=0.0)  # any clipped pixel
+    np.testing.assert_allclose(any_px[3, 6], 1.0)
+    same, _ = L.downsample_clipped(ldr, mask, 1)
     np.testing.assert_array_equal(same, np.clip(ldr, 0, 1))
     with pytest.raises(ValueError, match="divide"):
         L.downsample_clipped(ldr, mask, 3)
