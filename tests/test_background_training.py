@@ -296,6 +296,7 @@ def test_step1_writes_the_clipped_record_and_estimate_light_uses_it(trained, tmp
     cfg = EstimateConfig(width=128, height=64, oct_res=16, light_head="none")
     r = estimate_light(run2 / "point_cloud.ply", pos, cfg, FillBackend("mean"))
     assert r["meta"]["trace"]["background_clipped"] > 0
+    assert r["meta"]["light_head_block"] == 1                      # no head run here
     from comgs_dr.lighting import lights
     regs = lights.clipped_regions(r["input"]["rgb"], r["input"]["mask"])
     assert regs, "the recorded ray is not a clipped region of the panorama"
@@ -312,3 +313,12 @@ def test_step1_writes_the_clipped_record_and_estimate_light_uses_it(trained, tmp
     assert r1["meta"]["trace"]["background_clipped"] == 0
     r2 = estimate_light(run2 / "point_cloud.ply", pos, cfg, FillBackend("mean"))   # inf
     assert r2["meta"]["trace"]["background_clipped"] > 100
+    # with the shipped head: a record coarser than the panorama's pixels (4° discs, 2.8°
+    # pixels) makes the head read 2x2 blocks, and its light lands on the recorded ray
+    bgenv.save(run2, rad, obs, _record(dirs[j, i], [1, 1, 1], radius=np.radians(4.0)))
+    r3 = estimate_light(run2 / "point_cloud.ply", pos, EstimateConfig(
+        width=128, height=64, oct_res=16), FillBackend("mean"))
+    assert r3["meta"]["light_head_block"] == 2
+    assert r3["lobes"], "no light from the recorded clipped ray"
+    d3 = np.asarray(r3["lobes"][0]["direction"])
+    assert np.degrees(np.arccos(np.clip(d3 @ dirs[j, i], -1, 1))) < 8

@@ -248,7 +248,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
 
     t = time.perf_counter()
     head = _load_head(cfg.light_head)
-    lobes = []
+    lobes, f = [], 1
     if head is not None:
         f = head_factor(trace)
         pred = light_head.predict_lobes(*light_head.downsample_clipped(rgb, mask, f), head,
@@ -274,6 +274,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
             "trace": _jsonable(trace["meta"]), "radiance": "linear",
             "layout": {"hdr": "equirect", "oct": "octahedral"}}
     meta["light_head"] = None if head is None else str(cfg.light_head)
+    meta["light_head_block"] = f             # the head read the panorama in f×f blocks
     return {"hdr": radiance, "oct": oct_map, "ldrs": ldrs,
             "input": {"rgb": rgb, "normal": normal, "mask": mask},
             "lights": lights, "lobes": lobes, "coverage": cov, "timings": timings, "meta": meta}
