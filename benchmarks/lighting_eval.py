@@ -168,8 +168,7 @@ def make_methods(weights, head_path=None, diffusers=None) -> tuple[dict, object]
         methods["net"] = (net, False)
         if head is not None:
             methods["net+lights"] = (net, True)
-        blend = backends.BlendBackend([net, backends.FillBackend("sh")],      # as estimate-light
-                                      label_weights=backends.LABEL_WEIGHTS)
+        blend = backends.net_sh_blend(net)                          # as estimate-light
         methods["net+sh"] = (blend, False)
         if head is not None:
             methods["net+sh+lights"] = (blend, True)

@@ -113,8 +113,7 @@ def e2e_methods(head: str = "default") -> tuple[dict, dict]:
     from comgs_dr.lighting import backends
     net = backends.load_network_backend()
     be = {"net": net, "push_pull": backends.FillBackend("push_pull"),
-          "default": backends.BlendBackend([net, backends.FillBackend("sh")],
-                                           label_weights=backends.LABEL_WEIGHTS)}
+          "default": backends.net_sh_blend(net)}
     methods = {"default": ("default", head), "net+lights": ("net", head), "net": ("net", "none"),
                "push_pull": ("push_pull", "none"), "push_pull+lights": ("push_pull", head)}
     return methods, be

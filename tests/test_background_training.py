@@ -322,3 +322,9 @@ def test_step1_writes_the_clipped_record_and_estimate_light_uses_it(trained, tmp
     assert r3["lobes"], "no light from the recorded clipped ray"
     d3 = np.asarray(r3["lobes"][0]["direction"])
     assert np.degrees(np.arccos(np.clip(d3 @ dirs[j, i], -1, 1))) < 8
+
+
+def test_clipped_level_is_the_light_heads():
+    """Step 1 records a pixel as clipped at the level at which the light head reads one."""
+    from comgs_dr.lighting import lights
+    assert bgenv.CLIPPED == lights.SAT

@@ -51,8 +51,7 @@ def _estimate_backend(args):
     if args.backend in ("net", "net+sh"):
         res = tuple(args.net_resolution) if args.net_resolution else None
         net = backends.load_network_backend(args.weights, res)
-        return net if args.backend == "net" else backends.BlendBackend(
-            [net, backends.FillBackend("sh")], label_weights=backends.LABEL_WEIGHTS)
+        return net if args.backend == "net" else backends.net_sh_blend(net)
     if args.backend == "diffusers":
         if not args.diffusers_dir:
             raise ValueError("--backend diffusers needs --diffusers-dir DIR")

@@ -32,7 +32,7 @@ from comgs_dr.lighting.completion import (
     NetworkBackend,
 )
 
-__all__ = ["FILL_KINDS", "FillBackend", "BlendBackend", "DEFAULT_WEIGHTS", "LABEL_WEIGHTS",
+__all__ = ["FILL_KINDS", "FillBackend", "BlendBackend", "DEFAULT_WEIGHTS", "LABEL_WEIGHTS", "net_sh_blend",
            "load_network_backend", "default_backend", "DiffusersBackend", "check_inputs"]
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "completion.pt"
@@ -201,12 +201,16 @@ def _backend_label(b) -> str:
 LABEL_WEIGHTS = {"outdoor": (1.0, 0.0)}
 
 
+def net_sh_blend(net: CompletionBackend) -> "BlendBackend":
+    """``net`` blended with the SH fill as ``estimate-light`` does: ½ + ½ in the hole
+    (``BlendBackend``), ``net`` alone for label "outdoor" (``LABEL_WEIGHTS``)."""
+    return BlendBackend([net, FillBackend("sh")], label_weights=LABEL_WEIGHTS)
+
+
 def default_backend(resolution: tuple[int, int] | None = None) -> "BlendBackend":
-    """What ``estimate-light``, ``compose`` and the demo use: ½ the shipped net + ½ the SH
-    fill in the hole (``BlendBackend``), the net alone for label "outdoor"
-    (``LABEL_WEIGHTS``)."""
-    return BlendBackend([load_network_backend(resolution=resolution), FillBackend("sh")],
-                        label_weights=LABEL_WEIGHTS)
+    """What ``estimate-light``, ``compose`` and the demo use: ``net_sh_blend`` of the
+    shipped net."""
+    return net_sh_blend(load_network_backend(resolution=resolution))
 
 
 # ---------------------------------------------------------------------------------------
