@@ -320,3 +320,10 @@ def test_head_factor_matches_the_capture_pixel():
     assert head_factor(trace(1024, 0.1)) == 1                    # a finer capture
     assert head_factor(trace(1024, 1.4)) == 4
     assert head_factor(trace(100, 14.4)) == 2                    # 4 does not divide 50
+    # a row limit: the smallest power of 2 that reaches it; a coarser capture still wins
+    assert head_factor(trace(1024, None), 256) == 2
+    assert head_factor(trace(1024, None), 200) == 4
+    assert head_factor(trace(512, None), 256) == 1
+    assert head_factor(trace(1024, 0.1), 256) == 2
+    assert head_factor(trace(1024, 1.4), 256) == 4
+    assert head_factor(trace(1024, None), 0) == 1                # 0: no limit
