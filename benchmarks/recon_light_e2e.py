@@ -1,5 +1,5 @@
 """End to end through step 1: a real map lights a scene, step 1 reconstructs it, and
-``estimate_light`` at the placement is scored against the map.
+``estimate_light`` at the placement is scored against the light that arrives there.
 
 For each map (default: the held-out outdoor shared maps, ``pano_data.HELD_OUT``):
 
@@ -9,14 +9,17 @@ For each map (default: the held-out outdoor shared maps, ``pano_data.HELD_OUT``)
    the horizon that see the sky (and the sun where it is low enough);
 2. step 1 (``train_radiance``, preset "scene", learnt sky behind the surfels) reconstructs it;
 3. ``estimate_light`` runs at the placement of the dataset's object with each method, and
-   ``eval.lighting_metrics.compare_maps`` scores the result against the exposed map: the
-   issue's E(facing the true dominant light) / E(facing up), the dominant light's angle
-   and the total power ratio.
+   ``eval.lighting_metrics.compare_maps`` scores the result against the true light at the
+   placement: the scene without the object, path-traced from there along every direction
+   (``data.placement_probe``; ``--truth map``: the exposed map, as before, which ignores the
+   scene's occlusion and reflections and has the map's own ground below the horizon). The
+   scores: the issue's E(facing the true dominant light) / E(facing up), the dominant
+   light's angle and the total power ratio.
 
 Methods: ``default`` (what ``estimate-light`` does: ``backends.default_backend`` and the light
 head), ``net+lights``, ``net``, ``push_pull`` and ``push_pull+lights``. ``recon_light_e2e.png``
 in ``--out`` shows, per map, the placement's input with the recorded clipped rays, the true
-map and the default's estimate.
+light and the default's estimate.
 
 This is the check ``sun_e2e.py`` cannot make: its scene is a perfect reconstruction, here
 the sun goes through LDR captures and step 1's optimisation (blur, a learnt background).
@@ -67,9 +70,24 @@ def build_run(map_path: Path, out: Path, a) -> tuple[Path, np.ndarray, float]:
     return run, m[:3, 3], scale
 
 
+def true_light(map_path: Path, out: Path, scale: float, kind: str) -> np.ndarray:
+    """The reference: the light path-traced at the placement in the dataset's scene without
+    the object (``data.placement_probe``, 256 rows, 64 strata per pixel; cached in ``out``),
+    or the exposed map itself (``kind`` "map": no occlusion by the scene, the map's own
+    ground below the horizon)."""
+    from comgs_dr.data import placement_probe
+    from comgs_dr.lighting import envmap
+    if kind == "map":
+        return envmap.read_envmap_file(map_path)[0].astype(np.float64) * scale
+    f = out / "probe_256.npy"
+    if not f.is_file():
+        np.save(f, placement_probe.placement_probe(out / "dataset", height=256, spp_side=8))
+    return np.load(f).astype(np.float64)
+
+
 def save_figure(panels: list, path: Path) -> Path:
     """One row per map: the placement's EV-0 input (recorded clipped rays in red), the true
-    map and the default's estimate, both at the true map's exposure (tone-mapped)."""
+    light and the default's estimate, both at the truth's exposure (tone-mapped)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -86,7 +104,7 @@ def save_figure(panels: list, path: Path) -> Path:
             inp[clip.max(-1) >= 0.5] = [1.0, 0.0, 0.0]
         for ax, img, title in ((row[0], inp, f"{name}: input at the placement (red: "
                                 "recorded clipped rays)"),
-                               (row[1], tonemap(np.clip(t * k, 0, None)), "true map"),
+                               (row[1], tonemap(np.clip(t * k, 0, None)), "true light"),
                                (row[2], tonemap(np.clip(est * k, 0, None)),
                                 f"estimate (default): E ratio {100 * err:+.0f} %")):
             ax.imshow(np.clip(img, 0, 1))
@@ -115,12 +133,13 @@ def main(argv=None):
     ap.add_argument("--trace-res", type=int, default=512, help="trace height (width 2x; "
                     "512: estimate-light's default 1024x512)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--truth", choices=("probe", "map"), default="probe", help="score against "
+                    "the light path-traced at the placement in the scene (default) or the map")
     ap.add_argument("--no-sun-view", action="store_true", help="do not aim the first sky "
                     "view at the sun (a low sun may then be missed by every view)")
     a = ap.parse_args(argv)
     import comgs_dr
     comgs_dr.set_variant("llvm_ad_rgb")
-    from comgs_dr.lighting import envmap
     from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light
     from comgs_dr.train import background as bgenv
     from sun_e2e import TABLE_HEAD, e2e_methods, outdoor_maps, print_summary, score
@@ -135,7 +154,7 @@ def main(argv=None):
         t0 = time.perf_counter()
         run, pos, scale = build_run(p, Path(a.out) / p.stem, a)
         t_build = time.perf_counter() - t0
-        truth = envmap.read_envmap_file(p)[0].astype(np.float64) * scale
+        truth = true_light(p, Path(a.out) / p.stem, scale, a.truth)
         for name, (kind, head) in methods.items():
             t0 = time.perf_counter()
             cfg = EstimateConfig(width=2 * a.trace_res, height=a.trace_res, oct_res=64,

@@ -226,3 +226,30 @@ def test_spacing_too_small_is_refused():
         cd.place_objects({"a": v, "b": v}, 0.0, 0.5, 1.0, np.random.default_rng(0))
     with pytest.raises(ValueError, match="object_scale must be > 0"):
         cd.CompositionDatasetConfig(object_scale=0)
+
+
+@needs_shared
+def test_placement_probe_sees_the_sun_and_the_scene(ds):
+    """The probe at an object's placement (data.placement_probe), rebuilt from
+    composition.json: the sun is its brightest direction; below, it sees the scene's ground
+    (lit, so not black), not the map's own lower half."""
+    from comgs_dr.core.equirect import equirect_uv_to_dir_np
+    from comgs_dr.data import placement_probe as pp
+    from comgs_dr.lighting.envmap import read_envmap_file
+    from comgs_dr.lighting.hdr import area_resize_equirect
+    out, _, comp = ds
+    name = next(iter(comp["objects"]))
+    tr = read_placements(out / "transform.json")
+    assert np.allclose(pp.placement_position(out, name), tr[name].translation)
+    probe = pp.placement_probe(out, name, height=16, spp_side=2).astype(np.float64)
+    d = equirect_uv_to_dir_np(np.stack(np.meshgrid((np.arange(32) + 0.5) / 32,
+                                                      (np.arange(16) + 0.5) / 16), -1).reshape(-1, 2))
+    lum = probe.reshape(-1, 3) @ [0.2126, 0.7152, 0.0722]
+    assert d[np.argmax(lum)] @ np.asarray(comp["scene"]["sun_direction"]) > np.cos(np.radians(15))
+    env = area_resize_equirect(read_envmap_file(comp["scene"]["envmap"])[0].astype(np.float64),
+                               16, 32) * comp["scene"]["envmap_scale"]
+    down = d[:, 2] < -0.7
+    assert lum[down].min() > 0 and np.isfinite(probe).all()
+    assert np.abs(probe.reshape(-1, 3)[down] - env.reshape(-1, 3)[down]).mean() > 0.01
+    with pytest.raises(KeyError, match="no placement"):
+        pp.placement_position(out, "nothing")
