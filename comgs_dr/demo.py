@@ -27,7 +27,7 @@ from PIL import Image, ImageDraw
 
 from comgs_dr import set_variant
 from comgs_dr.core import colorspace, runlog
-from comgs_dr.data import procedural
+from comgs_dr.data import placement_probe, procedural
 from comgs_dr.data.composition_dataset import CompositionDatasetConfig, make_composition_dataset
 from comgs_dr.data.images import read_image, to_u8
 from comgs_dr.data.load import load_dataset
@@ -72,13 +72,15 @@ class DemoConfig:
     probes: int = 2000
     shadow_probes: int = 2000
     rays: int = 128
+    probe_height: int = 256                     # rows of the true light path-traced at the
+                                                # placement (the lighting error's reference)
     seed: int = 0
     progress: bool = True
 
     def __post_init__(self):
         """Sizes are checked here, before anything is written (``--res 0`` used to render
         the procedural inputs first)."""
-        lows = {"resolution": 8, "sfm_points": 0, "seed": 0, "sky_views": 0}
+        lows = {"resolution": 8, "sfm_points": 0, "seed": 0, "sky_views": 0, "probe_height": 4}
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             if f.type in (int, "int") and (isinstance(v, bool) or not isinstance(v, int)
@@ -92,7 +94,8 @@ PRESETS = {
     "tiny": DemoConfig(resolution=24, scene_views=8, sky_views=2, object_views=8, test_views=2,
                        spp=4,
                        sfm_points=800, scene_iterations=30, object_iterations=30,
-                       material_iterations=10, probes=200, shadow_probes=150, rays=16),
+                       material_iterations=10, probes=200, shadow_probes=150, rays=16,
+                       probe_height=32),
 }
 
 
@@ -136,7 +139,8 @@ def envmap_figure(true_eq: np.ndarray, est_eq: np.ndarray, width: int = 384) -> 
     """True | estimated equirect maps at the placement (same exposure, ``colorspace.tonemap``)."""
     scale = 1.0 / max(float(np.percentile(true_eq @ colorspace.LUMA, 90)), 1e-6)
     panels = []
-    for label, m in (("true map", true_eq), ("estimated at the placement", est_eq)):
+    for label, m in (("true light at the placement", true_eq),
+                     ("estimated at the placement", est_eq)):
         x = np.clip(m * scale * 0.5, 0, None)
         img = Image.fromarray(to_u8(colorspace.tonemap(x))).resize(
             (width, width // 2), Image.BILINEAR)
@@ -225,9 +229,14 @@ def run_demo(cfg: DemoConfig) -> dict:
     comparison_figure(ds / "comp" / "gt", {v: comp / "renders" / v for v in VARIANTS}, names,
                       scores).save(out / "comparison.png")
     est = estimated[OBJECT]["hdr"]
-    true_eq = envmap.read_envmap_file(meta["scene"]["envmap"])[0] * meta["scene"]["envmap_scale"]
+    # the truth: the light that arrives at the placement (the scene without the object,
+    # path-traced from there); the map itself ignores the scene's shadows and ground
+    true_eq = placement_probe.placement_probe(ds, OBJECT, height=cfg.probe_height,
+                                              spp_side=8)
     envmap_figure(true_eq, est).save(out / "envmaps.png")
     light_err = lighting_metrics.compare_maps(est, true_eq)
+    map_eq = envmap.read_envmap_file(meta["scene"]["envmap"])[0] * meta["scene"]["envmap_scale"]
+    light_err_map = lighting_metrics.compare_maps(est, map_eq)
 
     summary = {
         "variant": variant, "config": dataclasses.asdict(cfg), "stage_seconds": times,
@@ -239,6 +248,7 @@ def run_demo(cfg: DemoConfig) -> dict:
         "frames": len(names),
         "scene_step1_psnr_test": s1["psnr_test"], "object_step1_psnr_test": o1["psnr_test"],
         "object_step2_psnr_test": o2["psnr_test"], "lighting": light_err,
+        "lighting_vs_map": light_err_map,
         "edit_seconds": edit["timings"],
     }
     (out / "demo.json").write_text(json.dumps(summary, indent=1))

@@ -166,7 +166,12 @@ def _demo_section(d: dict) -> str:
                   "light_up_irradiance_ratio_gt", "power_ratio_est_gt"):
             if L.get(k) is not None:
                 rows.append([k, L[k]])
-        s += ["<h3>Lighting estimated at the placement vs the true map</h3>",
+        Lm = d.get("lighting_vs_map") or {}
+        for k in ("light_angle_deg", "light_up_irradiance_ratio_gt"):
+            if Lm.get(k) is not None:
+                rows.append([f"{k} (against the scene's map instead)", Lm[k]])
+        s += ["<h3>Lighting estimated at the placement vs the true light there (the scene "
+              "without the object, path-traced from the placement)</h3>",
               _table(["measure", "value"], rows)]
     st = d.get("stage_seconds", {})
     if st:
