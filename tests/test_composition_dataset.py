@@ -191,9 +191,14 @@ def test_cli_path_objects_and_summary(tmp_path, capsys):
     code = cli.main(["make-dataset", "composition", "--out", str(tmp_path), "--objects",
                      f"teapot,{mesh}", "--scene-map", "kiara_1_dawn_1k.hdr", "--res", "16",
                      "--scene-views", "1", "--object-views", "1", "--test-views", "1",
-                     "--spp", "2", "--points", "0", "--quiet"])
+                     "--spp", "2", "--points", "0", "--probe-height", "8", "--quiet"])
     assert code == 0, capsys.readouterr().err
-    assert "composite test views" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "composite test views" in printed and "2 placement probe(s)" in printed
+    from comgs_dr.lighting.envmap import read_envmap_file
+    for name in ("teapot", "suzanne"):
+        img, layout = read_envmap_file(tmp_path / "probes" / f"{name}.exr")
+        assert img.shape == (8, 16, 3) and np.isfinite(img).all() and img.max() > 0
     comp = json.loads((tmp_path / "composition.json").read_text())
     assert list(comp["objects"]) == ["teapot", "suzanne"]
     assert comp["objects"]["suzanne"]["material"]["base_color"] == [0.6, 0.6, 0.6]
@@ -212,6 +217,7 @@ def test_cli_path_objects_and_summary(tmp_path, capsys):
     (["--test-views", "0"], "test_views must be >= 1"),
     (["--spp", "-2"], "spp must be >= 1"),
     (["--points", "-1"], "sfm_points must be >= 0"),
+    (["--probe-height", "-1"], "--probe-height must be >= 0"),
 ])
 def test_bad_flags_are_clear_errors(tmp_path, capsys, flags, message):
     out = tmp_path / "o"

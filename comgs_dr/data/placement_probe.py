@@ -31,9 +31,10 @@ import numpy as np
 
 from comgs_dr.core.equirect import equirect_uv_to_dir_np
 from comgs_dr.data import composition_dataset as comp
-from comgs_dr.lighting.envmap import load_envmap
+from comgs_dr.lighting.envmap import load_envmap, write_exr
 
-__all__ = ["render_probe", "empty_scene", "placement_position", "placement_probe"]
+__all__ = ["render_probe", "empty_scene", "placement_position", "placement_probe",
+           "write_probes"]
 
 
 def render_probe(scene: "mi.Scene", position, height: int = 128, spp_side: int = 8,
@@ -126,3 +127,16 @@ def placement_probe(ds_dir, name: str | None = None, height: int = 128,
     """[height, 2·height, 3] true light at object ``name``'s placement in the empty scene."""
     return render_probe(empty_scene(ds_dir), placement_position(ds_dir, name), height,
                         spp_side, seed)
+
+
+def write_probes(ds_dir, height: int = 128, spp_side: int = 8, seed: int = 0) -> dict:
+    """``probes/<name>.exr`` (linear RGB equirect, layout metadata) of the true light at every
+    object's placement in the composition dataset ``ds_dir``; returns {name: path}."""
+    ds = Path(ds_dir)
+    scene = empty_scene(ds)
+    names = json.loads((ds / "transform.json").read_text())
+    out = {}
+    for name in names:
+        img = render_probe(scene, placement_position(ds, name), height, spp_side, seed)
+        out[name] = write_exr(ds / "probes" / f"{name}.exr", img, "equirect")
+    return out
