@@ -205,6 +205,7 @@ def run_demo(cfg: DemoConfig) -> dict:
     scene_ply = str(scene_run / "point_cloud.ply")
 
     def estimator(pos):
+        estimated["position"] = np.asarray(pos, np.float64)
         estimated[OBJECT] = estimate_light(scene_ply, pos, EstimateConfig(label="outdoor"), backend)
         return estimated[OBJECT]["hdr"]
 
@@ -231,8 +232,8 @@ def run_demo(cfg: DemoConfig) -> dict:
     est = estimated[OBJECT]["hdr"]
     # the truth: the light that arrives at the placement (the scene without the object,
     # path-traced from there); the map itself ignores the scene's shadows and ground
-    true_eq = placement_probe.placement_probe(ds, OBJECT, height=cfg.probe_height,
-                                              spp_side=8)
+    true_eq = placement_probe.render_probe(placement_probe.empty_scene(ds),
+                                           estimated["position"], cfg.probe_height, 8)
     envmap_figure(true_eq, est).save(out / "envmaps.png")
     light_err = lighting_metrics.compare_maps(est, true_eq)
     map_eq = envmap.read_envmap_file(meta["scene"]["envmap"])[0] * meta["scene"]["envmap_scale"]
