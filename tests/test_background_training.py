@@ -132,6 +132,22 @@ def test_bad_background_settings():
         RadianceConfig(background="sky")
     with pytest.raises(ValueError, match="env_resolution"):
         RadianceConfig(env_resolution=2)
+    with pytest.raises(ValueError, match="lr_env_final must be > 0"):
+        RadianceConfig(lr_env_final=0.0)
+
+
+def test_env_learning_rate_decays_exponentially():
+    """lr_env at the start, lr_env_final at the end, geometric in between (the sky's Adam
+    steps set the texels' noise floor: a constant step leaves them speckled)."""
+    from types import SimpleNamespace
+
+    from comgs_dr.stages.reconstruct import Trainer
+    cfg = RadianceConfig(lr_env=0.01, lr_env_final=0.0001)
+    lr = [Trainer._lr_env(SimpleNamespace(cfg=cfg, run_fraction=lambda t=t: t))
+          for t in (0.0, 0.5, 1.0)]
+    assert lr == pytest.approx([0.01, 0.001, 0.0001])
+    const = RadianceConfig(lr_env=0.05)                 # None: constant, whatever lr_env
+    assert Trainer._lr_env(SimpleNamespace(cfg=const, run_fraction=lambda: 1.0)) == 0.05
 
 
 def test_render_run_shows_the_learned_sky(sky_scene, trained):
