@@ -20,7 +20,12 @@ import sys
 
 from comgs_dr.cli.composition import _add_compose, _add_render_comp
 from comgs_dr.cli.datasets import _add_demo, _add_make_dataset, _add_report
-from comgs_dr.cli.lighting import _add_estimate_light, _add_train_completion, _add_train_light_head
+from comgs_dr.cli.lighting import (
+    _add_compare_light,
+    _add_estimate_light,
+    _add_train_completion,
+    _add_train_light_head,
+)
 from comgs_dr.cli.objects import (
     _add_decompose,
     _add_export_mesh,
@@ -32,7 +37,7 @@ from comgs_dr.core.config import numeric_problem
 from comgs_dr.train.interrupt import TrainingInterrupted
 
 _SUBCOMMANDS = (_add_make_dataset, _add_demo, _add_report, _add_reconstruct, _add_render,
-                _add_export_mesh, _add_decompose, _add_relight, _add_estimate_light,
+                _add_export_mesh, _add_decompose, _add_relight, _add_estimate_light, _add_compare_light,
                 _add_train_completion, _add_train_light_head, _add_compose, _add_render_comp)
 
 def build_parser() -> argparse.ArgumentParser:

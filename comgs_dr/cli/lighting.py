@@ -1,9 +1,17 @@
-"""The command line: ``comgs estimate-light``, ``train-completion``, ``train-light-head``."""
+"""The command line: ``comgs estimate-light``, ``compare-light``, ``train-completion``,
+``train-light-head``."""
 from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
 
 from comgs_dr import set_variant
 from comgs_dr.core.config import add_config_arguments, config_overrides
-from comgs_dr.lighting import backends
+from comgs_dr.eval.lighting_metrics import compare_maps
+from comgs_dr.lighting import backends, envmap
+from comgs_dr.lighting.hdr import area_resize_equirect
 from comgs_dr.stages import train_completion, train_light_head
 from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light, write_outputs
 
@@ -73,6 +81,50 @@ def _cmd_estimate_light(args) -> int:
     for k, v in r["timings"].items():
         print(f"{k:<12}{v:>10.3f}")
     print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+# ----------------------------------------------------------------------------- compare-light
+
+def _add_compare_light(sub) -> None:
+    p = sub.add_parser("compare-light", help="score an estimated environment map against the "
+                       "true light (e.g. a dataset's probes/<object>.exr)",
+                       description="Array-of-spheres si-RMSE and colour angular error (diffuse, "
+                                   "matte silver), the angle between the dominant lights, the "
+                                   "irradiance ratio E(facing the true dominant light) / E(up) "
+                                   "of each map and the total power ratio "
+                                   "(comgs_dr.eval.lighting_metrics.compare_maps). Both maps are "
+                                   "linear equirect or octahedral files of any size; the finer "
+                                   "is area-averaged to the coarser.")
+    p.add_argument("estimate", metavar="EST.exr")
+    p.add_argument("truth", metavar="TRUE.exr")
+    p.add_argument("--json", metavar="PATH", help="also write the scores here")
+    p.set_defaults(func=_cmd_compare_light)
+
+
+def _equirect(path) -> np.ndarray:
+    img, layout = envmap.read_envmap_file(path)
+    return envmap.oct_to_equirect_np(img, 2 * img.shape[0]) if layout == "octahedral" else img
+
+
+def _cmd_compare_light(args) -> int:
+    est, gt = _equirect(args.estimate), _equirect(args.truth)
+    if est.shape[0] < gt.shape[0]:                      # compare at the coarser size
+        gt = area_resize_equirect(gt, *est.shape[:2])
+    m = compare_maps(est, gt)
+    rows = [(f"spheres {k}: si-RMSE / angular error °",
+             f"{v['si_rmse']:.4f} / {v['angular_deg']:.2f}") for k, v in m["spheres"].items()]
+    re, rg = m.get("light_up_irradiance_ratio_est"), m.get("light_up_irradiance_ratio_gt")
+    if m.get("light_angle_deg") is not None:
+        rows.append(("dominant light angle °", f"{m['light_angle_deg']:.2f}"))
+    if re is not None and rg is not None:
+        rows.append(("E(light)/E(up): estimate / truth / error",
+                     f"{re:.3f} / {rg:.3f} / {100 * (re / rg - 1):+.1f} %"))
+    rows.append(("power estimate / truth", f"{m['power_ratio_est_gt']:.3f}"))
+    w = max(len(r[0]) for r in rows)
+    print("\n".join(f"{a:<{w}}  {b}" for a, b in rows))
+    if args.json:
+        Path(args.json).write_text(json.dumps(m, indent=1))
     return 0
 
 
