@@ -351,10 +351,10 @@ def head_factor(trace: dict, max_rows: int = 0) -> int:
     at 512×256 (20 pixels) 55× of 86×.
 
     ``max_rows`` (``EstimateConfig.light_head_rows``, 256): the head is least accurate at 512
-    rows. The 5 held-out maps at 1024×512 through 12 traced masks (29 draws, the log of the
-    predicted over the true power of the clipped regions): mean |error| 0.62 with the head at
-    512 rows, 0.57 / 0.59 / 0.65 at 256 / 128 / 64 (blender_sunrise −1.12 at 512, −0.48 at
-    256); from 512×256 maps, 0.53 at 256 rows and 0.49 at 128."""
+    rows. ``benchmarks/light_head_rows.py`` (the 5 held-out maps at 1024×512, 6 draws each,
+    the mean |log(predicted / true power)| of the clipped regions): 0.64 with the head at 512
+    rows, 0.55 / 0.55 / 0.64 at 256 / 128 / 64 (blender_sunrise −0.96 at 512, −0.30 at 256).
+    """
     h, w = trace["alpha"].shape
     f = 1
     if max_rows and h > max_rows:
