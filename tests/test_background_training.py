@@ -174,8 +174,9 @@ def test_cli_make_dataset_with_sky_views(sky_scene, tmp_path):
                      str(src / "torus.ply"), "--scene-map", str(src / "sky.exr"), "--object-map",
                      str(src / "studio.exr"), "--res", "16", "--scene-views", "3",
                      "--object-views", "2", "--test-views", "1", "--sky-views", "2",
-                     "--ground-half", "6", "--quiet"])
+                     "--ground-half", "6", "--probe-height", "0", "--quiet"])
     assert code == 0
+    assert not (tmp_path / "d" / "probes").exists()          # 0: no probes
     comp = json.loads((tmp_path / "d" / "composition.json").read_text())
     assert comp["scene"]["n_train"] == 5 and comp["scene"]["sky_views"] == 2
     assert comp["scene"]["shapes"]["ground"]["half_size"] == 6.0

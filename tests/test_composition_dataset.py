@@ -200,6 +200,9 @@ def test_cli_path_objects_and_summary(tmp_path, capsys):
         img, layout = read_envmap_file(tmp_path / "probes" / f"{name}.exr")
         assert img.shape == (8, 16, 3) and np.isfinite(img).all() and img.max() > 0
     comp = json.loads((tmp_path / "composition.json").read_text())
+    where = json.loads((tmp_path / "probes" / "probes.json").read_text())
+    box = np.asarray(comp["objects"]["teapot"]["bbox_world"])
+    assert np.allclose(where["teapot"]["position"], box.mean(0))
     assert list(comp["objects"]) == ["teapot", "suzanne"]
     assert comp["objects"]["suzanne"]["material"]["base_color"] == [0.6, 0.6, 0.6]
     assert comp["scene"]["envmap"].endswith("kiara_1_dawn_1k.hdr")
@@ -217,7 +220,8 @@ def test_cli_path_objects_and_summary(tmp_path, capsys):
     (["--test-views", "0"], "test_views must be >= 1"),
     (["--spp", "-2"], "spp must be >= 1"),
     (["--points", "-1"], "sfm_points must be >= 0"),
-    (["--probe-height", "-1"], "--probe-height must be >= 0"),
+    (["--probe-height", "-1"], "--probe-height must be in [0, 4096]"),
+    (["--probe-height", "5000"], "--probe-height must be in [0, 4096]"),
 ])
 def test_bad_flags_are_clear_errors(tmp_path, capsys, flags, message):
     out = tmp_path / "o"
@@ -257,5 +261,9 @@ def test_placement_probe_sees_the_sun_and_the_scene(ds):
     down = d[:, 2] < -0.7
     assert lum[down].min() > 0 and np.isfinite(probe).all()
     assert np.abs(probe.reshape(-1, 3)[down] - env.reshape(-1, 3)[down]).mean() > 0.01
+    box = np.asarray(comp["objects"][name]["bbox_world"])
+    assert np.allclose(pp.placement_position(out, name, at="centre"), box.mean(0))
     with pytest.raises(KeyError, match="no placement"):
         pp.placement_position(out, "nothing")
+    with pytest.raises(ValueError, match="'origin' or 'centre'"):
+        pp.placement_position(out, name, at="top")

@@ -36,18 +36,20 @@ def test_open_sky_probe_is_the_map_area_averaged():
     assert np.abs(probe - ref[:, ::-1]).max() > 0.1
 
 
-def test_sub_pixel_sun_keeps_its_power():
-    """A sun of one map texel (1/64 of a probe pixel) is integrated with its area, not hit
-    or missed: its pixel's power matches the map's within the stratification error."""
+@pytest.mark.parametrize("row", [40, 1])
+def test_sub_pixel_sun_keeps_its_power(row):
+    """A sun of one map texel (1/64 of a probe pixel, 256 strata) is integrated with its solid
+    angle, not hit or missed, also next to a pole (strata uniform in θ gave it 4.2× its power
+    at row 1): its pixel's power matches the map's within the stratification error."""
     h, w = 128, 256
     img = np.full((h, w, 3), 0.1)
-    img[40, 77] = 5000.0
-    probe = render_probe(_scene(img), [0.0, 0.0, 0.0], height=16, spp_side=8)
+    img[row, 77] = 5000.0
+    probe = render_probe(_scene(img), [0.0, 0.0, 0.0], height=16, spp_side=16)
     dw_map, dw_probe = pixel_solid_angles(h, w), pixel_solid_angles(16, 32)
     true = (img @ LUMA * dw_map).sum()
     got = (probe.astype(np.float64) @ LUMA * dw_probe).sum()
-    assert abs(got / true - 1.0) < 0.2
-    assert np.unravel_index(np.argmax(probe @ LUMA), (16, 32)) == (40 // 8, 77 // 8)
+    assert abs(got / true - 1.0) < 0.2          # 3 seeds: 0.86–1.05
+    assert np.unravel_index(np.argmax(probe @ LUMA), (16, 32)) == (row // 8, 77 // 8)
 
 
 def test_occluder_hides_the_sky_above():
@@ -65,7 +67,9 @@ def test_occluder_hides_the_sky_above():
 
 @pytest.mark.parametrize("kw, msg", [(dict(position=[0, 0]), "3 finite"),
                                      (dict(position=[0, np.nan, 0]), "3 finite"),
-                                     (dict(height=0), ">= 1"), (dict(spp_side=0), ">= 1")])
+                                     (dict(height=0), "height must be in"),
+                                     (dict(height=5000), "height must be in"),
+                                     (dict(spp_side=0), "spp_side")])
 def test_bad_arguments_are_clear_errors(kw, msg):
     args = dict(position=[0.0, 0.0, 0.0], height=4, spp_side=1) | kw
     with pytest.raises(ValueError, match=msg):

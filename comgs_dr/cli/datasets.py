@@ -105,9 +105,10 @@ def _add_make_dataset(sub) -> None:
     c.add_argument("--sun-view", action="store_true", dest="sun_view", default=None,
                    help="aim the first sky view at the sun (a low sun is then always seen)")
     c.add_argument("--probe-height", type=int, default=128, metavar="H",
-                   help="rows of probes/<object>.exr, the true light at each placement (the "
-                        "scene without the objects, path-traced from there: the reference for "
-                        "`estimate-light`; default 128, 0: none)")
+                   help="rows of probes/<object>.exr, the true light at the centre of each "
+                        "object's box (the scene without the objects, path-traced from there; "
+                        "where `compose` estimates the lighting): the reference for a lighting "
+                        "estimate (`comgs compare-light`); default 128, 0: none")
     c.add_argument("--ground-half", type=float, dest="ground_half", metavar="H",
                    help="half side of the square ground (default 25)")
     c.add_argument("--spp", type=int, metavar="S", help="samples per pixel of training views "
@@ -170,12 +171,12 @@ def _make_composition(args) -> int:
                   "test_views", "spp", "sfm_points", "seed", "sky_views", "ground_half",
                   "sun_view")
                  if getattr(args, k, None) is not None}
-    if args.probe_height < 0:
-        raise ValueError(f"--probe-height must be >= 0, got {args.probe_height}")
+    from comgs_dr.data.placement_probe import MAX_HEIGHT, write_probes
+    if not 0 <= args.probe_height <= MAX_HEIGHT:
+        raise ValueError(f"--probe-height must be in [0, {MAX_HEIGHT}], got {args.probe_height}")
     cfg = CompositionDatasetConfig(out_dir=args.out, variant=set_variant(args.variant), **overrides)
     s = make_composition_dataset(cfg, progress=not args.quiet)
     if args.probe_height:
-        from comgs_dr.data.placement_probe import write_probes
         probes = write_probes(args.out, args.probe_height)
         print(f"wrote {len(probes)} placement probe(s) ({args.probe_height} rows) to "
               f"{Path(args.out) / 'probes'}")

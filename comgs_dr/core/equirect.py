@@ -29,10 +29,12 @@ def coverage(alpha) -> float:
 
 
 def pixel_directions(width: int, height: int, start: int, stop: int, supersample: int = 1,
-                     rng=None) -> np.ndarray:
+                     rng=None, equal_area: bool = False) -> np.ndarray:
     """Unit directions [(stop − start)·s², 3] of pixels start..stop−1 (row-major), the s²
     sub-rays of a pixel contiguous. s = 1: pixel centres; s > 1: one jittered ray per
-    stratum (``rng`` a numpy Generator)."""
+    stratum (``rng`` a numpy Generator), uniform in (u, v), or with ``equal_area`` uniform in
+    (u, cos θ): each stratum then covers an equal solid angle of the pixel, so the strata's
+    mean is the pixel's solid-angle average (a small sun near a pole is not over-weighted)."""
     s = int(supersample)
     p = np.arange(start, stop)
     i, j = (p % width).astype(np.float64), (p // width).astype(np.float64)
@@ -43,7 +45,12 @@ def pixel_directions(width: int, height: int, start: int, stop: int, supersample
         sx, sy = sx.ravel()[None, :], sy.ravel()[None, :]                   # [1, s²]
         jit = (rng or np.random.default_rng(0)).uniform(0.0, 1.0, (2, len(p), s * s))
         u = ((i[:, None] + (sx + jit[0]) / s) / width).ravel()
-        v = ((j[:, None] + (sy + jit[1]) / s) / height).ravel()
+        t = (sy + jit[1]) / s                                               # [P, s²] in the pixel
+        if equal_area:
+            z0, z1 = np.cos(np.pi * j / height)[:, None], np.cos(np.pi * (j + 1) / height)[:, None]
+            v = (np.arccos(np.clip(z0 - t * (z0 - z1), -1.0, 1.0)) / np.pi).ravel()
+        else:
+            v = ((j[:, None] + t) / height).ravel()
     return equirect_uv_to_dir_np(np.stack([u, v], -1))
 
 

@@ -170,8 +170,9 @@ def _demo_section(d: dict) -> str:
         for k in ("light_angle_deg", "light_up_irradiance_ratio_gt"):
             if Lm.get(k) is not None:
                 rows.append([f"{k} (against the scene's map instead)", Lm[k]])
-        s += ["<h3>Lighting estimated at the placement vs the true light there (the scene "
-              "without the object, path-traced from the placement)</h3>",
+        truth = ("the true light there (the scene without the object, path-traced from the "
+                 "placement)" if "lighting_vs_map" in d else "the scene's map")
+        s += [f"<h3>Lighting estimated at the placement vs {truth}</h3>",
               _table(["measure", "value"], rows)]
     st = d.get("stage_seconds", {})
     if st:

@@ -341,7 +341,8 @@ def add_background(trace: dict, run_dir, clipped_max_texels: float = np.inf) -> 
 def head_factor(trace: dict, max_rows: int = 0) -> int:
     """Block size f (a power of 2 dividing the panorama) at which the light head reads the
     panorama: the smallest that brings it to at most ``max_rows`` rows (0: no limit), and
-    coarser where step 1's clipped record (``add_background``) was drawn at a coarser pixel.
+    coarser where step 1's clipped record (``add_background``) was drawn at a coarser pixel;
+    halved until it divides H and W (a panorama of odd height is read at full size).
 
     The record knows clipping only at the capture's pixel size, and the head reads a region's
     size in panorama pixels (trained on panoramas where a sun is 1–4 pixels), so the panorama
