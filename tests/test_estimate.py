@@ -275,7 +275,8 @@ def test_sanitize_and_backend_input_units():
 def test_config_and_default_backend_errors(params, tmp_path, monkeypatch):
     for bad in (dict(label="space"), dict(evs=(-2.5, -5.0)), dict(evs=(0.0, 1.0)),
                 dict(oct_res=1), dict(colour_space="aces"), dict(clipped_max_texels=-1),
-                dict(clipped_max_texels=float("nan"))):
+                dict(clipped_max_texels=float("nan")), dict(light_head_rows=-1),
+                dict(light_head_rows=1.5)):
         with pytest.raises(ValueError, match="EstimateConfig"):
             estimate_light(_scene(params), POS, EstimateConfig(**{**SMALL, **bad}),
                            backends.FillBackend("mean"))
