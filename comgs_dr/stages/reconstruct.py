@@ -92,12 +92,8 @@ class RadianceConfig:
     background: str = "grey"              # grey | env: a learned sky / far field (train.background)
     env_resolution: int = 64              # octahedral texels per side of the env background
     lr_env: float = 0.01
-    # None: constant. Else lr_env decays exponentially to it, as the positions' rate does.
-    # Measured (sky texels seen in the open vs the true map, display values; 3 maps of
-    # benchmarks/recon_light_e2e): 0.001 cut the speckle of a constant step (Adam's noise
-    # floor) by 40–56 % and the error of blender_sunrise's smooth sky 0.039 → 0.024, but
-    # under-fitted the detailed courtyard / kiara skies (0.151 → 0.175, 0.101 → 0.149);
-    # 0.003 in between. Off by default.
+    # None: constant; else lr_env decays exponentially to it. 0.001 cleaned a smooth sky
+    # (sunrise: error 0.039 → 0.024) but under-fitted detailed ones (kiara 0.101 → 0.149)
     lr_env_final: float | None = None
     lambda_binary: float = 0.05           # coverage entropy, with the env background only
     lambda_env_tv: float = 0.01           # total variation of the env background
