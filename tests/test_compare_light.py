@@ -27,7 +27,13 @@ def test_same_map_scores_perfect_and_a_brighter_one_shows_its_power(tmp_path, ca
                      str(tmp_path / "t.json")]) == 0
     assert json.loads((tmp_path / "t.json").read_text())["power_ratio_est_gt"] == 2.0
     # a coarser estimate is compared at its own size; the sun stays where it is
-    assert cli.main(["compare-light", str(same), str(t), "--json", str(tmp_path / "c.json")]) == 0
+    assert cli.main(["compare-light", str(same), str(t), "--json", str(tmp_path / "c.json"),
+                     "--png", str(tmp_path / "c.png")]) == 0
+    from PIL import Image
+    sheet = np.asarray(Image.open(tmp_path / "c.png").convert("RGB"), np.float64)
+    assert sheet.shape[1] > 2 * sheet.shape[0]                  # two 2:1 panels side by side
+    half = sheet.shape[1] // 2
+    assert np.abs(sheet[:, :half - 2].mean() - sheet[:, half + 2:].mean()) < 10   # same map
     assert json.loads((tmp_path / "c.json").read_text())["light_angle_deg"] < 6.0
 
 

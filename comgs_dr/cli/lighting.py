@@ -99,6 +99,8 @@ def _add_compare_light(sub) -> None:
     p.add_argument("estimate", metavar="EST.exr")
     p.add_argument("truth", metavar="TRUE.exr")
     p.add_argument("--json", metavar="PATH", help="also write the scores here")
+    p.add_argument("--png", metavar="PATH", help="also write the two maps side by side (the "
+                   "truth's exposure, tone-mapped)")
     p.set_defaults(func=_cmd_compare_light)
 
 
@@ -125,6 +127,10 @@ def _cmd_compare_light(args) -> int:
     print("\n".join(f"{a:<{w}}  {b}" for a, b in rows))
     if args.json:
         Path(args.json).write_text(json.dumps(m, indent=1))
+    if args.png:
+        from comgs_dr.demo import envmap_figure
+        shown = area_resize_equirect(est, *gt.shape[:2]) if est.shape[0] > gt.shape[0] else est
+        envmap_figure(gt, shown).save(args.png)
     return 0
 
 
