@@ -133,6 +133,8 @@ def main(argv=None):
     ap.add_argument("--trace-res", type=int, default=512, help="trace height (width 2x; "
                     "512: estimate-light's default 1024x512)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--label", choices=("auto", "outdoor", "indoor", "unknown"), default="auto",
+                    help="estimate-light's scene label (auto: the map's, pano_data.label_of)")
     ap.add_argument("--truth", choices=("probe", "map"), default="probe", help="score against "
                     "the light path-traced at the placement in the scene (default) or the map")
     ap.add_argument("--no-sun-view", action="store_true", help="do not aim the first sky "
@@ -140,6 +142,7 @@ def main(argv=None):
     a = ap.parse_args(argv)
     import comgs_dr
     comgs_dr.set_variant("llvm_ad_rgb")
+    from comgs_dr.lighting import pano_data
     from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light
     from comgs_dr.train import background as bgenv
     from sun_e2e import TABLE_HEAD, e2e_methods, outdoor_maps, print_summary, score
@@ -155,10 +158,11 @@ def main(argv=None):
         run, pos, scale = build_run(p, Path(a.out) / p.stem, a)
         t_build = time.perf_counter() - t0
         truth = true_light(p, Path(a.out) / p.stem, scale, a.truth)
+        label = pano_data.label_of(p.stem) if a.label == "auto" else a.label
         for name, (kind, head) in methods.items():
             t0 = time.perf_counter()
             cfg = EstimateConfig(width=2 * a.trace_res, height=a.trace_res, oct_res=64,
-                                 label="outdoor", light_head=head)
+                                 label=label, light_head=head)
             r = estimate_light(str(run / "point_cloud.ply"), pos, cfg, be[kind])
             dt = time.perf_counter() - t0
             row = score(p.stem, name, r, truth, dt)
