@@ -111,8 +111,10 @@ def _equirect(path) -> np.ndarray:
 
 def _cmd_compare_light(args) -> int:
     est, gt = _equirect(args.estimate), _equirect(args.truth)
-    if est.shape[0] < gt.shape[0]:                      # compare at the coarser size
+    if est.shape[0] < gt.shape[0]:                      # compare (and show) at the coarser size
         gt = area_resize_equirect(gt, *est.shape[:2])
+    elif est.shape[0] > gt.shape[0]:
+        est = area_resize_equirect(est, *gt.shape[:2])
     m = compare_maps(est, gt)
     rows = [(f"spheres {k}: si-RMSE / angular error °",
              f"{v['si_rmse']:.4f} / {v['angular_deg']:.2f}") for k, v in m["spheres"].items()]
@@ -129,8 +131,7 @@ def _cmd_compare_light(args) -> int:
         Path(args.json).write_text(json.dumps(m, indent=1))
     if args.png:
         from comgs_dr.demo import envmap_figure
-        shown = area_resize_equirect(est, *gt.shape[:2]) if est.shape[0] > gt.shape[0] else est
-        envmap_figure(gt, shown).save(args.png)
+        envmap_figure(gt, est).save(args.png)
     return 0
 
 
