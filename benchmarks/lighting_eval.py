@@ -30,19 +30,24 @@ fill) and ``diffusers`` when ``--diffusers DIR`` names a local model. "Ours" is
 
 Per sample, besides the sphere metrics: ``light_angle_deg``, the angle between the dominant
 lights (``hdr.extract_lights``, k = 1) of the estimate and of the truth; ``light_in_hole``,
-whether the true dominant light's direction is unobserved; ``relight_psnr``, PSNR of a
+whether the true dominant light's direction is unobserved; ``light_clear``, whether it is
+clearly dominant (the only light of ``extract_lights``, or ≥ ``CLEAR_MARGIN`` = 1.5× the power
+of its second light, seeded like the first in the top 0.1 % of the sphere: below that two lights cast comparable shadows and which one "dominates" flips
+with a 10 % power error; the studio map's two soft boxes are 1.11× apart); ``relight_psnr``, PSNR of a
 diffuse + glossy sphere (½ diffuse + ½ matte silver) under the estimate vs the truth, exposed
 at EV 0 (absolute: the estimate's power counts); ``sun_up_log_err``, |log| of the ratio of
 E(facing the true light) / E(facing up) between estimate and truth.
 
 Tables: per method × coverage group × material; per method × group × {all, light visible,
-light in hole}, averaged over the three materials; run time per sample. A PNG (``--out``)
+light in hole, light visible and clearly dominant}, averaged over the three materials; run
+time per sample. A PNG (``--out``)
 shows a few examples. The last line is
 ``net_wins=<k>/<n> si_rmse_net=<a> si_rmse_best_baseline=<b>``: n = coverage groups × {si-RMSE,
 angular error} on material-averaged values, a win = ours strictly below every baseline;
 a, b = mean material-averaged si-RMSE over all samples of ours and of the best baseline.
 The line before it gives the dominant-light angular error with the light outside the hole,
-ours vs the best baseline.
+ours vs the best baseline; the line before that, the same where that light is also clearly
+dominant (``clear``).
 """
 from __future__ import annotations
 
@@ -64,7 +69,8 @@ METRICS = (("si_rmse", "si-RMSE"), ("angular_deg", "angular °"), ("nrmse", "nRM
 BASELINES = ("mean", "push_pull", "sh", "diffusers")
 EXTRA = (("light_angle_deg", "light angle °"), ("relight_psnr", "relight PSNR"),
          ("sun_up_log_err", "|log E_sun/E_up err|"))
-SPLITS = ("all", "visible", "hole")
+SPLITS = ("all", "visible", "hole", "clear")
+CLEAR_MARGIN = 1.5      # fixed before measuring: P(dominant) / P(second) for a "clear" light
 
 
 def parse_args(argv=None):
@@ -196,12 +202,16 @@ def ours(methods) -> str | None:
 
 def light_metrics(est, gt, alpha, obj_est, obj_gt, obj_mask) -> dict:
     """Dominant-light angle, light-in-hole flag, relighting PSNR and sun/up ratio error."""
+    from comgs_dr.core.colorspace import LUMA
     from comgs_dr.eval import lighting_metrics as lm
     from comgs_dr.lighting import hdr
-    out = {"light_angle_deg": None, "light_in_hole": None, "sun_up_log_err": None}
-    lg, le = hdr.extract_lights(gt, k=1), hdr.extract_lights(est, k=1)
+    out = {"light_angle_deg": None, "light_in_hole": None, "light_clear": None,
+           "sun_up_log_err": None}
+    lg, le = hdr.extract_lights(gt, k=2), hdr.extract_lights(est, k=1)
     if lg:
         d = lg[0]["direction"]
+        p = [float(l["rgb_power"] @ LUMA) for l in lg]
+        out["light_clear"] = bool(len(p) == 1 or p[0] >= CLEAR_MARGIN * p[1])
         h, w = alpha.shape
         from comgs_dr.core.equirect import equirect_dir_to_uv_np
         u, v = equirect_dir_to_uv_np(d[None])[0]
@@ -318,6 +328,8 @@ def _median(xs):
 def _split(recs, split: str):
     if split == "all":
         return recs
+    if split == "clear":
+        return [r for r in recs if r["light_in_hole"] is False and r["light_clear"]]
     return [r for r in recs if r["light_in_hole"] is (split == "hole")]
 
 
@@ -364,6 +376,8 @@ def summarise(res: dict) -> dict:
                if np.isfinite(overall[b]["si_rmse"]) else np.inf) if base else None
     vis = {me: per_split[(me, "all", "visible")]["light_angle_deg"] for me in methods}
     best_vis = min((b for b in base if np.isfinite(vis[b])), key=lambda b: vis[b], default=None)
+    clr = {me: per_split[(me, "all", "clear")]["light_angle_deg"] for me in methods}
+    best_clr = min((b for b in base if np.isfinite(clr[b])), key=lambda b: clr[b], default=None)
     return {"per_material": per_mat, "per_group": per_group, "per_split": per_split,
             "overall": overall, "timing": timing, "net_wins": wins, "n_comparisons": n,
             "ours": me_ours, "best_baseline": best,
@@ -371,7 +385,11 @@ def summarise(res: dict) -> dict:
             "si_rmse_best_baseline": overall[best]["si_rmse"] if best else float("nan"),
             "light_angle_visible_ours": vis.get(me_ours, float("nan")),
             "light_angle_visible_best_baseline": vis[best_vis] if best_vis else float("nan"),
-            "best_baseline_light_angle": best_vis}
+            "best_baseline_light_angle": best_vis,
+            "light_angle_clear_ours": clr.get(me_ours, float("nan")),
+            "light_angle_clear_best_baseline": clr[best_clr] if best_clr else float("nan"),
+            "best_baseline_light_angle_clear": best_clr,
+            "n_clear": per_split[(me_ours, "all", "clear")]["n"] if me_ours else 0}
 
 
 def print_tables(res: dict, s: dict, args):
@@ -396,7 +414,8 @@ def print_tables(res: dict, s: dict, args):
                       + " | ".join(f"{v[k]:.4f}" for k, _ in METRICS) + " |")
     print("\n### Per coverage group and dominant-light split (sphere metrics averaged over "
           "the 3 materials; light angle, relighting PSNR and sun/up error of the dominant "
-          "light; 'visible' = the true dominant light is observed, 'hole' = it is not)\n")
+          "light; 'visible' = the true dominant light is observed, 'hole' = it is not, "
+          f"'clear' = visible and ≥ {CLEAR_MARGIN}× the power of the second light)\n")
     cols = METRICS + EXTRA
     print("| coverage | light | method | n | " + " | ".join(h for _, h in cols)
           + " | median si-RMSE | pano si-RMSE |")
@@ -518,6 +537,9 @@ def main(argv=None) -> dict:
         print(f"json: {p}")
     for line in draw_lines:
         print(line)
+    print(f"light_angle_clear ours={s['light_angle_clear_ours']:.4g} "
+          f"best_baseline={s['light_angle_clear_best_baseline']:.4g} "
+          f"({s['best_baseline_light_angle_clear']}, n={s['n_clear']})")
     print(f"light_angle_visible ours={s['light_angle_visible_ours']:.4g} "
           f"best_baseline={s['light_angle_visible_best_baseline']:.4g} "
           f"({s['best_baseline_light_angle']})")

@@ -88,17 +88,45 @@ def test_lighting_eval_smoke(tmp_path, pano_data, variant, capsys):
     assert len(out["records"]) == 3 * len(methods)    # kept masks x methods
     assert out["ours"] == "net+sh+lights"
     assert re.fullmatch(r"light_angle_visible ours=\S+ best_baseline=\S+ \(\S+\)", lines[-2])
+    assert re.fullmatch(r"light_angle_clear ours=\S+ best_baseline=\S+ \(\S+, n=\d+\)", lines[-3])
     for r in out["records"]:
         assert all(np.isfinite(r[key]) for key in ("si_rmse", "angular_deg", "nrmse",
                                                     "pano_si_rmse", "time_s",
                                                     "relight_psnr"))
         assert r["light_angle_deg"] is None or 0 <= r["light_angle_deg"] <= 180
         assert r["light_in_hole"] in (None, True, False)
+        assert r["light_clear"] in (None, True, False)
+        assert (r["light_clear"] is None) == (r["light_in_hole"] is None)
     assert {r["label"] for r in out["records"]} == {"indoor", "outdoor"}
     assert (tmp_path / "fig" / "lighting_eval.png").stat().st_size > 0
     dump = json.loads((tmp_path / "r.json").read_text())
     assert dump["summary"]["net_wins"] == k and len(dump["records"]) == 3 * len(methods)
     assert any(l.startswith("| coverage | light | method |") for l in lines)
+
+
+def _two_suns(h, w, second):
+    """[h, w, 3]: a dim sky, a sun of power 1 at +x and one of power ``second`` at −x."""
+    img = np.full((h, w, 3), 1e-3)
+    dw = pixel_solid_angles(h, w)[:, 0]
+    img[h // 2 - 1, 0] = 1.0 / dw[h // 2 - 1]
+    img[h // 2 - 1, w // 2] = second / dw[h // 2 - 1]
+    return img
+
+
+@pytest.mark.parametrize("second,clear", [(1.0, False), (0.9, False), (0.5, True), (0.0, True)])
+def test_light_clear_needs_a_margin_over_the_second_light(second, clear):
+    """Two suns of equal power are no clear dominant light; at half the power (or none) the
+    first is; the angle and the visibility do not depend on the flag."""
+    bench = _bench()
+    h, w = 64, 128                      # both suns among the top 0.1 % of the sphere (seeds)
+    gt = _two_suns(h, w, second)
+    objs = np.zeros((1, 4, 4, 3)), np.zeros((1, 4, 4, 3)), np.ones((4, 4), bool)
+    out = bench.light_metrics(gt, gt, np.ones((h, w)), *objs)
+    assert out["light_clear"] is clear
+    assert out["light_in_hole"] is False and out["light_angle_deg"] == pytest.approx(0, abs=1e-3)
+    recs = [{"light_in_hole": False, "light_clear": clear}, {"light_in_hole": True,
+                                                            "light_clear": True}]
+    assert bench._split(recs, "clear") == ([recs[0]] if clear else [])
 
 
 def test_held_out_selects_the_never_trained_maps(tmp_path, pano_data, variant, capsys):
