@@ -31,17 +31,17 @@ fill) and ``diffusers`` when ``--diffusers DIR`` names a local model. "Ours" is
 Per sample, besides the sphere metrics: ``light_angle_deg``, the angle between the dominant
 lights (``hdr.extract_lights``, k = 1) of the estimate and of the truth; ``light_in_hole``,
 whether the true dominant light's direction is unobserved; ``light_clear``, whether it is
-clearly dominant (the only light of ``extract_lights``, or ≥ ``CLEAR_MARGIN`` = 1.5× the power
-of its second light, seeded like the first in the top 0.1 % of the sphere: below that two lights cast comparable shadows and which one "dominates" flips
-with a 10 % power error; the studio map's two soft boxes are 1.11× apart); ``relight_psnr``, PSNR of a
-diffuse + glossy sphere (½ diffuse + ½ matte silver) under the estimate vs the truth, exposed
+clearly dominant (the only light of ``extract_lights``, or ≥ ``CLEAR_MARGIN`` = 1.5× the
+power of its second light, seeded like the first in the top 0.1 % of the sphere: below that
+two lights cast comparable shadows, and which one "dominates" flips with a 10 % power error;
+the studio map's two soft boxes are 1.11× apart); ``relight_psnr``, PSNR of a diffuse +
+glossy sphere (½ diffuse + ½ matte silver) under the estimate vs the truth, exposed
 at EV 0 (absolute: the estimate's power counts); ``sun_up_log_err``, |log| of the ratio of
 E(facing the true light) / E(facing up) between estimate and truth.
 
 Tables: per method × coverage group × material; per method × group × {all, light visible,
 light in hole, light visible and clearly dominant}, averaged over the three materials; run
-time per sample. A PNG (``--out``)
-shows a few examples. The last line is
+time per sample. A PNG (``--out``) shows a few examples. The last line is
 ``net_wins=<k>/<n> si_rmse_net=<a> si_rmse_best_baseline=<b>``: n = coverage groups × {si-RMSE,
 angular error} on material-averaged values, a win = ours strictly below every baseline;
 a, b = mean material-averaged si-RMSE over all samples of ours and of the best baseline.

@@ -105,7 +105,8 @@ def test_lighting_eval_smoke(tmp_path, pano_data, variant, capsys):
 
 
 def _two_suns(h, w, second):
-    """[h, w, 3]: a dim sky, a sun of power 1 at +x and one of power ``second`` at −x."""
+    """[h, w, 3]: a dim sky, a one-pixel sun of power 1 at u = 0 and one of power ``second``
+    at u = ½ (the opposite azimuth), both just above the horizon."""
     img = np.full((h, w, 3), 1e-3)
     dw = pixel_solid_angles(h, w)[:, 0]
     img[h // 2 - 1, 0] = 1.0 / dw[h // 2 - 1]
