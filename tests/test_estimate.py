@@ -151,6 +151,12 @@ def test_light_head_restores_clipped_power(params, tmp_path):
     paths = write_outputs(on, tmp_path / "env.exr")
     doc = json.loads(paths["json"].read_text())
     assert doc["lobes"] and doc["meta"]["light_head"] == str(path)
+    # every region the head read is in the JSON, with the power it ended with
+    assert len(doc["light_head_regions"]) == len(regions)
+    for rec in doc["light_head_regions"]:
+        assert rec["action"] == "added" and rec["gain"] == pytest.approx(gain, rel=1e-5)
+        assert rec["power"] == pytest.approx(gain * rec["brackets_power"], rel=1e-3)
+    assert off["light_regions"] == []
     shipped = estimate_light(scene, POS, EstimateConfig(**SMALL), fill)   # the default head
     assert shipped["meta"]["light_head"] == "default" and np.isfinite(shipped["hdr"]).all()
     assert shipped["hdr"].max() > off["hdr"].max()           # the white window got brighter
@@ -196,6 +202,9 @@ def test_cli_on_ply(params, tiny_weights, tmp_path, capsys):
     assert out.is_file() and (tmp_path / "env_oct.exr").is_file()
     doc = json.loads((tmp_path / "env.json").read_text())
     assert doc["meta"]["source"] == str(ply) and doc["meta"]["colour_space"] == "srgb"
+    lines = [l for l in text.splitlines() if l.startswith("clipped region ")]
+    assert len(lines) == len(doc["light_head_regions"]) >= 1        # the white window
+    assert all(l.endswith(("(added)", "(reduced)", "(unchanged)")) for l in lines)
     assert main(args + ["--backend", "sh"]) == 0
     assert "FillBackend(sh)" in capsys.readouterr().out
     # errors -> exit code 2 with a message

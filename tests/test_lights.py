@@ -161,6 +161,15 @@ def test_add_lights_restores_the_predicted_power():
     assert np.allclose(out4[reg], np.minimum(out[reg], 1.0))
     with pytest.raises(ValueError, match="excess"):
         L.add_lights(out, [half], excess="drop")
+    # describe_regions: every region with what happened there, including the matched one
+    d1, = L.describe_regions(lobes, fused, out)
+    assert d1["action"] == "added" and d1["power"] == pytest.approx(true_p, rel=1e-4)
+    assert d1["brackets_power"] == pytest.approx(seen_p, rel=1e-6)
+    assert d1["predicted_power"] == pytest.approx(true_p, rel=1e-5)
+    d3, = L.describe_regions([half], out, out3)
+    assert d3["action"] == "reduced" and d3["power"] == pytest.approx(0.5 * true_p, rel=1e-6)
+    d2, = L.describe_regions([half], out, out2)
+    assert d2["action"] == "unchanged" and d2["power"] == d2["brackets_power"]
 
 
 def test_head_weights_round_trip_and_errors(tmp_path):

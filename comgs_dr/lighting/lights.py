@@ -56,7 +56,8 @@ from comgs_dr.lighting.hdr import label_equirect
 
 __all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_regions",
            "FEATURES", "region_features", "LightHead", "HeadEnsemble", "save_head", "load_head",
-           "DEFAULT_HEAD", "predict_lobes", "downsample_clipped", "add_lights", "SAT"]
+           "DEFAULT_HEAD", "predict_lobes", "downsample_clipped", "add_lights", "describe_regions",
+           "SAT"]
 
 SAT = 0.98                 # EV-0 max channel at/above which a pixel counts as clipped
 MAX_LOG_GAIN = 25.0       # P_true / P_seen ≤ e^25 ≈ 7e10 (a real sun at EV 0: ~1e5)
@@ -430,3 +431,27 @@ def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
                       "solid_angle": lb["solid_angle"], "rgb_power": rgb, "amplitude": amp,
                       "gain": lb.get("gain")})
     return out + render_lobes(sg_lobes, h, w), added
+
+
+def describe_regions(pred: list[dict], before, after) -> list[dict]:
+    """What the light head did to each clipped region it read (``lights.predict_lobes``):
+    direction, solid angle, predicted gain and luminance power, the fused brackets' power in
+    the region ``before`` it and the map's power ``after`` it, and ``action``: "added" (the
+    missing power was drawn), "reduced" (the brackets' excess was matched down to the
+    prediction) or "unchanged". ``lobes`` lists only the added ones; this lists every region,
+    so a light the head weakened is not silently missing from ``estimate-light``'s JSON."""
+    h, w = before.shape[:2]
+    dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
+    lb_, la_ = np.asarray(before, np.float64) @ LUMA, np.asarray(after, np.float64) @ LUMA
+    out = []
+    for lb in pred:
+        reg = np.asarray(lb["region"], bool)
+        p0, p1 = float((lb_ * dw * reg).sum()), float((la_ * dw * reg).sum())
+        tol = 1e-6 * max(p0, p1, 1e-30)
+        out.append({"direction": np.asarray(lb["direction"], np.float64),
+                    "solid_angle": float(lb["solid_angle"]), "gain": float(lb["gain"]),
+                    "predicted_power": float(lb["luminance_power"]),
+                    "brackets_power": p0, "power": p1,
+                    "action": "added" if p1 > p0 + tol else
+                              "reduced" if p1 < p0 - tol else "unchanged"})
+    return out

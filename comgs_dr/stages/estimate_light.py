@@ -195,6 +195,8 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     ``hdr`` [H, W, 3] linear equirect (trace size), ``oct`` [R, R, 3] octahedral map,
     ``ldrs`` {ev: [H, W, 3]} completions, ``input`` {"rgb", "normal", "mask"} fed to the
     backend, ``lights`` (``hdr.extract_lights``), ``coverage`` (solid-angle fraction),
+    ``lobes`` (the light head's added lobes), ``light_regions`` (every clipped region the
+    head read and what it did there, ``lights.describe_regions``),
     ``timings`` {load, trace, completion, fusion, octahedral, lights, total} in seconds and ``meta``.
     Errors: see the module docstring.
     """
@@ -254,15 +256,17 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
 
     t = time.perf_counter()
     head = _load_head(cfg.light_head)
-    lobes, f = [], 1
+    lobes, regions, f = [], [], 1
     if head is not None:
         f = head_factor(trace, int(cfg.light_head_rows))
         pred = light_head.predict_lobes(*light_head.downsample_clipped(rgb, mask, f), head,
                                         LABELS[cfg.label])
         for lb in pred:                                      # regions back at full size
             lb["region"] = np.repeat(np.repeat(lb["region"], f, 0), f, 1)
+        before = radiance
         radiance, lobes = light_head.add_lights(radiance, pred)
         radiance = radiance.astype(np.float32)
+        regions = light_head.describe_regions(pred, before, radiance)
     timings["light_head"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -283,7 +287,8 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     meta["light_head_block"] = f             # the head read the panorama in f×f blocks
     return {"hdr": radiance, "oct": oct_map, "ldrs": ldrs,
             "input": {"rgb": rgb, "normal": normal, "mask": mask},
-            "lights": lights, "lobes": lobes, "coverage": cov, "timings": timings, "meta": meta}
+            "lights": lights, "lobes": lobes, "light_regions": regions, "coverage": cov,
+            "timings": timings, "meta": meta}
 
 
 def _background_dir(spec: str, source) -> Path | None:
@@ -448,6 +453,7 @@ def write_outputs(result: dict, out_path) -> dict:
     doc = {"meta": result["meta"], "timings": result["timings"],
            "lights": _lights_json(result["lights"]),
            "lobes": _lights_json(result.get("lobes", [])),
+           "light_head_regions": _lights_json(result.get("light_regions", [])),
            "files": {k: v.name for k, v in paths.items()}}
     paths["json"].write_text(json.dumps(_jsonable(doc), indent=2))
     runlog.rewrite(paths["metrics"].parent,
