@@ -170,6 +170,11 @@ def test_add_lights_restores_the_predicted_power():
     assert d3["action"] == "reduced" and d3["power"] == pytest.approx(0.5 * true_p, rel=1e-6)
     d2, = L.describe_regions([half], out, out2)
     assert d2["action"] == "unchanged" and d2["power"] == d2["brackets_power"]
+    # as estimate_light calls it: float32 maps, the untouched region bit-identical
+    d4, = L.describe_regions([half], out.astype(np.float32), out2.astype(np.float32))
+    assert d4["action"] == "unchanged"
+    d5, = L.describe_regions(lobes, fused.astype(np.float32), out.astype(np.float32))
+    assert d5["action"] == "added" and d5["solid_angle"] == lobes[0]["solid_angle"]
 
 
 def test_head_weights_round_trip_and_errors(tmp_path):
