@@ -151,6 +151,15 @@ def test_light_head_restores_clipped_power(params, tmp_path):
     paths = write_outputs(on, tmp_path / "env.exr")
     doc = json.loads(paths["json"].read_text())
     assert doc["lobes"] and doc["meta"]["light_head"] == str(path)
+    # the preview's eighth panel paints the head's regions in their action's colour
+    from PIL import Image
+    im = np.asarray(Image.open(paths["preview"]).convert("RGB"), np.float64) / 255
+    assert im.shape[:2] == (4 * (H + 16), 2 * W)
+    panel = im[3 * (H + 16) + 16:, W:]                       # row 4, column 2
+    orange = np.abs(panel - np.array(lights.ACTION_RGB["added"])).max(-1) < 0.05
+    union = np.any([g["region"] for g in on["light_regions"]], 0)          # [H, W]
+    assert union.any() and not (orange & ~union).any()      # only the regions are painted
+    assert orange.sum() >= 0.5 * union.sum()                # (gain labels are drawn over them)
     # every region the head read is in the JSON, with the power it ended with
     assert len(doc["light_head_regions"]) == len(regions)
     for rec in doc["light_head_regions"]:

@@ -57,7 +57,7 @@ from comgs_dr.lighting.hdr import label_equirect
 __all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_regions",
            "FEATURES", "region_features", "LightHead", "HeadEnsemble", "save_head", "load_head",
            "DEFAULT_HEAD", "predict_lobes", "downsample_clipped", "add_lights", "describe_regions",
-           "SAT"]
+           "regions_overlay", "SAT"]
 
 SAT = 0.98                 # EV-0 max channel at/above which a pixel counts as clipped
 MAX_LOG_GAIN = 25.0       # P_true / P_seen ≤ e^25 ≈ 7e10 (a real sun at EV 0: ~1e5)
@@ -435,7 +435,7 @@ def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
 
 def describe_regions(pred: list[dict], before, after) -> list[dict]:
     """What the light head did to each clipped region it read (``lights.predict_lobes``):
-    direction, solid angle, predicted gain and luminance power, the fused brackets' power in
+    direction, ``region`` ([H, W] bool), solid angle, predicted gain and luminance power, the fused brackets' power in
     the region ``before`` it and the map's power ``after`` it, and ``action``: "added" (the
     missing power was drawn), "reduced" (the brackets' excess was matched down to the
     prediction) or "unchanged". ``lobes`` lists only the added ones; this lists every region,
@@ -448,10 +448,23 @@ def describe_regions(pred: list[dict], before, after) -> list[dict]:
         reg = np.asarray(lb["region"], bool)
         p0, p1 = float((lb_ * dw * reg).sum()), float((la_ * dw * reg).sum())
         tol = 1e-6 * max(p0, p1, 1e-30)
-        out.append({"direction": np.asarray(lb["direction"], np.float64),
+        out.append({"direction": np.asarray(lb["direction"], np.float64), "region": reg,
                     "solid_angle": float(lb["solid_angle"]), "gain": float(lb["gain"]),
                     "predicted_power": float(lb["luminance_power"]),
                     "brackets_power": p0, "power": p1,
                     "action": "added" if p1 > p0 + tol else
                               "reduced" if p1 < p0 - tol else "unchanged"})
     return out
+
+
+ACTION_RGB = {"added": (1.0, 0.55, 0.0), "reduced": (0.0, 0.8, 1.0), "unchanged": (0.6, 0.6, 0.6)}
+
+
+def regions_overlay(rgb, regions) -> np.ndarray:
+    """[H, W, 3] the EV-0 panorama ``rgb`` at ⅓ brightness with each region of
+    ``describe_regions`` painted in its action's colour (``ACTION_RGB``: orange added, cyan
+    reduced, grey unchanged), for ``estimate-light``'s preview."""
+    img = np.asarray(rgb, np.float64) / 3.0
+    for g in regions:
+        img[np.asarray(g["region"], bool)] = ACTION_RGB[g["action"]]
+    return img

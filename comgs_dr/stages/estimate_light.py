@@ -45,7 +45,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from comgs_dr.core import colorspace, runlog
-from comgs_dr.core.equirect import coverage, pixel_solid_angles
+from comgs_dr.core.equirect import coverage, equirect_dir_to_uv_np, pixel_solid_angles
 from comgs_dr.data.images import to_u8
 from comgs_dr.lighting import envmap, hdr
 from comgs_dr.lighting import lights as light_head
@@ -453,7 +453,8 @@ def write_outputs(result: dict, out_path) -> dict:
     doc = {"meta": result["meta"], "timings": result["timings"],
            "lights": _lights_json(result["lights"]),
            "lobes": _lights_json(result.get("lobes", [])),
-           "light_head_regions": _lights_json(result.get("light_regions", [])),
+           "light_head_regions": _lights_json([{k: v for k, v in g.items() if k != "region"}
+                                               for g in result.get("light_regions", [])]),
            "files": {k: v.name for k, v in paths.items()}}
     paths["json"].write_text(json.dumps(_jsonable(doc), indent=2))
     runlog.rewrite(paths["metrics"].parent,
@@ -466,8 +467,10 @@ def write_outputs(result: dict, out_path) -> dict:
 
 def preview_image(result: dict, panel_width: int = 512):
     """PIL image: labelled panels (input LDR, mask, normal, completion per EV, fused HDR
-    tone-mapped by ``colorspace.tonemap``: Reinhard on luminance), two per row, each at most
-    ``panel_width`` wide."""
+    tone-mapped by ``colorspace.tonemap``: Reinhard on luminance, and, when the light head
+    ran, the clipped regions it read over the dimmed input: orange where it added power, cyan
+    where it reduced the brackets' excess, grey where it left them, each labelled with its
+    gain), two per row, each at most ``panel_width`` wide."""
     inp = result["input"]
     mask = inp["mask"]
     panels = [("traced input LDR (EV 0)", inp["rgb"]),
@@ -479,6 +482,13 @@ def preview_image(result: dict, panel_width: int = 512):
     h = result["hdr"]
     panels.append((f"fused HDR, Reinhard (max {float(h.max()):.3g})",
                    colorspace.tonemap(h)))
+    regions, at = result.get("light_regions"), -1
+    if result["meta"].get("light_head") is not None and regions is not None:
+        n = {a: sum(g["action"] == a for g in regions) for a in ("added", "reduced")}
+        at = len(panels)
+        panels.append((f"light head: {len(regions)} clipped region(s); added "
+                       f"{n['added']} (orange), reduced {n['reduced']} (cyan)",
+                       light_head.regions_overlay(inp["rgb"], regions)))
     font = ImageFont.load_default()
     ih, iw = panels[0][1].shape[:2]
     pw = min(panel_width, iw)
@@ -491,4 +501,9 @@ def preview_image(result: dict, panel_width: int = 512):
         tile = Image.fromarray(to_u8(img)).resize((pw, ph), Image.BILINEAR)
         sheet.paste(tile, (x, y + bar))
         draw.text((x + 4, y + 2), title, fill=(255, 255, 255), font=font)
+        if i == at:                                            # gains at the regions
+            for g in regions:
+                u, v = equirect_dir_to_uv_np(np.asarray(g["direction"])[None])[0]
+                draw.text((x + min(int(u * pw), pw - 40), y + bar + min(int(v * ph), ph - 12)),
+                          f"x{g['gain']:.3g}", fill=(255, 255, 255), font=font)
     return sheet
