@@ -87,22 +87,13 @@ def scene_dict(spec: SceneSpec, env_bitmap) -> dict:
     }
 
 
-# The gbuffer's AOVs. ``pi:prim_index`` is not used: it is there because Mitsuba 3.9.1
-# (llvm_ad_rgb) writes out of bounds when an ImageBlock has exactly 16 channels (an RGBA
-# film, 7 AOV channels, the aov integrator's own 4 and the weight): under
-# ``dr.JitFlag.Debug`` every gbuffer render reported "out-of-bounds packet write to position
-# 16112 in an array of size 9216", and the heap it corrupted crashed the test suite at random
-# places later (segfaults in unrelated tests). 15, 17 and 18 channels write in bounds.
-GBUFFER_AOVS = "albedo:albedo,nn:sh_normal,dd:depth,pi:prim_index"
-
-
 class Renderer:
     """One loaded scene whose single sensor is moved per view (kernels are reused)."""
 
     def __init__(self, spec: SceneSpec, env_bitmap):
         self.spec = spec
         self._aov = mi.load_dict({
-            "type": "aov", "aovs": GBUFFER_AOVS,
+            "type": "aov", "aovs": "albedo:albedo,nn:sh_normal,dd:depth",
             # the inner integrator only supplies alpha (coverage) for the AOVs
             "inner": {"type": "direct", "hide_emitters": True,
                       "emitter_samples": 0, "bsdf_samples": 1}})
