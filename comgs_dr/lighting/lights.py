@@ -435,11 +435,14 @@ def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
 
 def describe_regions(pred: list[dict], before, after) -> list[dict]:
     """What the light head did to each clipped region it read (``lights.predict_lobes``):
-    direction, ``region`` ([H, W] bool), solid angle, predicted gain and luminance power, the fused brackets' power in
-    the region ``before`` it and the map's power ``after`` it, and ``action``: "added" (the
-    missing power was drawn), "reduced" (the brackets' excess was matched down to the
-    prediction) or "unchanged". ``lobes`` lists only the added ones; this lists every region,
-    so a light the head weakened is not silently missing from ``estimate-light``'s JSON."""
+    direction, ``region`` ([H, W] bool), solid angle, predicted gain and luminance power, the
+    fused brackets' power in the region ``before`` it and the map's power ``after`` it, and
+    ``action``: "added" (the missing power was drawn), "reduced" (the brackets' excess was
+    matched down to the prediction) or "unchanged". ``add_lights`` returns only the added
+    lobes; this lists every region, so a light the head weakened is not silently missing
+    from ``estimate-light``'s JSON. The action is read from the powers before and after
+    (relative tolerance 1e-6), which holds for ``add_lights``' default ``shape="sg_region"``
+    (power drawn inside the region); with ``shape="sg"`` a lobe spills outside it."""
     h, w = before.shape[:2]
     dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
     lb_, la_ = np.asarray(before, np.float64) @ LUMA, np.asarray(after, np.float64) @ LUMA
