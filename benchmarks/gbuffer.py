@@ -210,6 +210,8 @@ def volprim_tensors(path) -> dict:
     import mitsuba as mi
     import plyfile
 
+    from comgs_dr.core.hostarray import to_jit
+
     with open(path, "rb") as f:
         el = plyfile.PlyData.read(f)["vertex"]
     names = {p.name for p in el.properties}
@@ -237,7 +239,7 @@ def volprim_tensors(path) -> dict:
         sh[:, 1:] = rest.reshape(n, 3, K - 1).transpose(0, 2, 1)
 
     def T(a):
-        return mi.TensorXf(np.ascontiguousarray(a, np.float32))
+        return to_jit(mi.TensorXf, a)
 
     return {"centers": T(centers), "scales": T(scales), "quaternions": T(q),
             "opacities": T(op), "sh_coeffs": T(sh.reshape(n, 3 * K))}

@@ -56,6 +56,7 @@ def main():
     import mitsuba as mi
     from scipy.spatial import cKDTree
 
+    from comgs_dr.core.hostarray import to_jit
     from comgs_dr.sops.query import ProbeGrid, query
 
     rng = np.random.default_rng(0)
@@ -82,8 +83,8 @@ def main():
         t = time.perf_counter()
         grid = ProbeGrid(probes, radius)
         t_build = time.perf_counter() - t
-        x = mi.Point3f(pts[:, 0], pts[:, 1], pts[:, 2])
-        n = mi.Vector3f(nrm[:, 0], nrm[:, 1], nrm[:, 2])
+        x = to_jit(mi.Point3f, pts.T)
+        n = to_jit(mi.Vector3f, nrm.T)
         dr.eval(x, n)
 
         def ours():

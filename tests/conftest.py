@@ -15,18 +15,6 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 if os.environ.get("COMGS_GUARD_ALLOC") == "1":       # diagnostic: see tests/guard_alloc.py
     from guard_alloc import allocator
     allocator().__enter__()
-    _GUARD_EXIT = [0]
-
-    def pytest_sessionfinish(session, exitstatus):
-        _GUARD_EXIT[0] = int(exitstatus)
-
-    def pytest_unconfigure(config):
-        """Leave without interpreter finalisation: its garbage collection would call the
-        allocator's ctypes callbacks while the interpreter is being torn down."""
-        import sys
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(_GUARD_EXIT[0])
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -1,111 +1,113 @@
 """Guard-page allocator for numpy: finds code that hands Dr.Jit unpadded host memory.
 
 Dr.Jit 1.5's LLVM backend maps a CPU ndarray zero-copy (``mi.Float(a)``, ``mi.TensorXf(a)``)
-and its kernels then read the whole last 16-wide packet of the mapped array: up to 15
-elements past its end (measured: ``tests/test_hostarray.py``). When the array ends just
-before an unmapped page the process segfaults, at random, depending on the heap layout.
+and its kernels over more than 1024 elements read the whole last 16-wide packet of the
+mapped array: up to 15 elements past its end (``tests/test_hostarray.py``). When the array
+ends just before an unmapped page the process segfaults, at random, depending on the heap.
 
 With ``COMGS_GUARD_ALLOC=1`` the test session allocates every numpy buffer of at least
-``MIN_BYTES`` so that it ends at most 15 bytes before a ``PROT_NONE`` page (Electric-Fence
+``MIN_BYTES`` so that it ends less than 16 bytes before a ``PROT_NONE`` page (Electric-Fence
 style), which turns such a read into a deterministic crash at the offending kernel.
-Needs the optional ``numpy-allocator`` package; a diagnostic, not part of the default run.
+
+The allocator is a few lines of C compiled with the system's ``cc`` on first use (cached in
+the temp folder) and installed with the ``numpy-allocator`` package: Python callbacks would
+run while numpy frees arrays during exception unwinding, which CPython does not allow.
 """
 from __future__ import annotations
 
 import ctypes
-import mmap
+import hashlib
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
 
-PAGE = mmap.PAGESIZE
-MIN_BYTES = 4096
+MIN_BYTES = 4096           # 1024 float32: smaller kernels do not over-read (measured)
 
-_libc = ctypes.CDLL(None, use_errno=True)
-_libc.mmap.restype = ctypes.c_void_p
-_libc.mmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int,
-                       ctypes.c_int, ctypes.c_long]
-_libc.munmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
-_libc.mprotect.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
-_libc.malloc.restype = ctypes.c_void_p
-_libc.malloc.argtypes = [ctypes.c_size_t]
-_libc.calloc.restype = ctypes.c_void_p
-_libc.calloc.argtypes = [ctypes.c_size_t, ctypes.c_size_t]
-_libc.realloc.restype = ctypes.c_void_p
-_libc.realloc.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
-_libc.free.argtypes = [ctypes.c_void_p]
+_SOURCE = r"""
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/mman.h>
+#define MIN_BYTES %(min_bytes)d
+#define PAGE 4096
+#define MAGIC_GUARD 0x6775617264706167ULL
+#define MAGIC_SMALL 0x736d616c6c626c6bULL
+typedef struct { uint64_t magic, base, length, size; } hdr_t;   /* 32 bytes before the data */
 
-_live: dict[int, tuple[int, int, int]] = {}      # data pointer -> (mapping, length, size)
-_small: dict[int, int] = {}                        # libc blocks -> size
-foreign = [0]                                      # frees of pointers this allocator did not make
+void *guard_malloc(size_t size) {
+    if (size < MIN_BYTES) {
+        char *p = malloc(size + sizeof(hdr_t));
+        if (!p) return NULL;
+        hdr_t *h = (hdr_t *) p;
+        h->magic = MAGIC_SMALL; h->size = size;
+        return p + sizeof(hdr_t);
+    }
+    size_t pages = (size + 64 + PAGE - 1) / PAGE, length = (pages + 1) * PAGE;
+    char *base = mmap(NULL, length, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+    if (base == MAP_FAILED) return NULL;
+    char *guard = base + pages * PAGE;
+    mprotect(guard, PAGE, PROT_NONE);
+    char *ptr = (char *) ((uintptr_t) (guard - size) & ~(uintptr_t) 15);
+    hdr_t *h = (hdr_t *) (ptr - sizeof(hdr_t));
+    h->magic = MAGIC_GUARD; h->base = (uint64_t) base; h->length = length; h->size = size;
+    return ptr;
+}
 
+void guard_free(void *ptr) {
+    if (!ptr) return;
+    hdr_t *h = (hdr_t *) ((char *) ptr - sizeof(hdr_t));
+    if (h->magic == MAGIC_GUARD) { h->magic = 0; munmap((void *) h->base, h->length); }
+    else if (h->magic == MAGIC_SMALL) { h->magic = 0; free(h); }
+    else abort();                                    /* not ours: fail loudly */
+}
 
-def _guarded(size: int) -> int:
-    pages = (size + PAGE - 1) // PAGE
-    length = (pages + 1) * PAGE
-    base = _libc.mmap(None, length, mmap.PROT_READ | mmap.PROT_WRITE,
-                      mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS, -1, 0)
-    if base in (None, ctypes.c_void_p(-1).value):
-        return 0
-    guard = base + pages * PAGE
-    _libc.mprotect(guard, PAGE, 0)                     # PROT_NONE
-    ptr = (guard - size) & ~15                       # 16-byte aligned, ends < 16 bytes before the guard
-    _live[ptr] = (base, length, size)
-    return ptr
+void *guard_calloc(size_t n, size_t size) {
+    if (size && n > SIZE_MAX / size) return NULL;
+    void *p = guard_malloc(n * size);
+    if (p && n * size < MIN_BYTES) memset(p, 0, n * size);   /* mmap pages are zeroed */
+    return p;
+}
 
-
-def _small_block(ptr, size):
-    if ptr:
-        _small[ptr] = size
-    return ptr or 0
-
-
-def _malloc(size):
-    return _guarded(size) if size >= MIN_BYTES else _small_block(_libc.malloc(max(size, 1)), size)
-
-
-def _calloc(n, size):
-    total = n * size
-    return _guarded(total) if total >= MIN_BYTES else _small_block(_libc.calloc(max(total, 1), 1), total)
-
-
-def _free(ptr, *_):
-    if not ptr:
-        return
-    entry = _live.pop(ptr, None)
-    if entry is not None:
-        _libc.munmap(entry[0], entry[1])
-    elif _small.pop(ptr, None) is not None:
-        _libc.free(ptr)
-    else:
-        foreign[0] += 1
-
-
-def _realloc(ptr, size):
-    if not ptr:
-        return _malloc(size)
-    entry = _live.get(ptr)
-    old = entry[2] if entry is not None else _small.get(ptr)
-    if old is None:
-        foreign[0] += 1
-        return 0
-    new = _malloc(size)
-    if new:
-        ctypes.memmove(new, ptr, min(old, size))
-        _free(ptr)
-    return new
+void *guard_realloc(void *ptr, size_t size) {
+    if (!ptr) return guard_malloc(size);
+    hdr_t *h = (hdr_t *) ((char *) ptr - sizeof(hdr_t));
+    void *q = guard_malloc(size);
+    if (!q) return NULL;
+    memcpy(q, ptr, h->size < size ? h->size : size);
+    guard_free(ptr);
+    return q;
+}
+"""
 
 
-_MALLOC = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_size_t)(_malloc)
-_CALLOC = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_size_t, ctypes.c_size_t)(_calloc)
-_REALLOC = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_void_p, ctypes.c_size_t)(_realloc)
-_FREE = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_size_t)(_free)
+def _library() -> ctypes.CDLL:
+    src = _SOURCE % {"min_bytes": MIN_BYTES}
+    tag = hashlib.sha1(src.encode()).hexdigest()[:12]
+    lib = Path(tempfile.gettempdir()) / f"comgs_guard_alloc_{tag}.so"
+    if not lib.exists():
+        cc = shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+        if cc is None:
+            raise RuntimeError("guard_alloc: no C compiler (cc) to build the allocator")
+        c_file = lib.with_suffix(".c")
+        c_file.write_text(src)
+        tmp = lib.with_suffix(f".{tag}.tmp.so")
+        subprocess.run([cc, "-O2", "-shared", "-fPIC", "-o", str(tmp), str(c_file)], check=True)
+        tmp.replace(lib)
+    return ctypes.CDLL(str(lib))
 
 
 def allocator():
     """The numpy-allocator handler (use as a context manager)."""
     import numpy_allocator
+    lib = _library()
 
     class guard_pages(metaclass=numpy_allocator.type):
-        _malloc_ = ctypes.addressof(_MALLOC)
-        _calloc_ = ctypes.addressof(_CALLOC)
-        _realloc_ = ctypes.addressof(_REALLOC)
-        _free_ = ctypes.addressof(_FREE)
-    return guard_pages
+        _malloc_ = ctypes.addressof(lib.guard_malloc)
+        _calloc_ = ctypes.addressof(lib.guard_calloc)
+        _realloc_ = ctypes.addressof(lib.guard_realloc)
+        _free_ = ctypes.addressof(lib.guard_free)
+    for obj in (guard_pages, lib, lib.guard_malloc, lib.guard_calloc, lib.guard_realloc,
+                lib.guard_free):
+        ctypes.pythonapi.Py_IncRef(ctypes.py_object(obj))   # numpy reads the pointers through
+    return guard_pages                                      # these until the process ends

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import comgs_dr  # noqa: F401  (sets up LLVM / plugins before mitsuba is used)
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.shading import brdf
 
 N_MC = 1 << 18
@@ -16,16 +17,16 @@ N_MC = 1 << 18
 
 def vec3(a):
     a = np.asarray(a, dtype=np.float32).reshape(-1, 3)                     # [N, 3]
-    return mi.Vector3f(a[:, 0], a[:, 1], a[:, 2])
+    return to_jit(mi.Vector3f, a.T)
 
 
 def col3(a, n):
     a = np.broadcast_to(np.asarray(a, dtype=np.float32), (n, 3))            # [N, 3]
-    return mi.Color3f(a[:, 0], a[:, 1], a[:, 2])
+    return to_jit(mi.Color3f, a.T)
 
 
 def flt(a, n):
-    return mi.Float(np.broadcast_to(np.asarray(a, dtype=np.float32), (n,)).copy())
+    return to_jit(mi.Float, np.broadcast_to(np.asarray(a, dtype=np.float32), (n,)))
 
 
 def np3(v):
@@ -59,7 +60,7 @@ def unit(rng, n):
 
 def point2(u):
     u = np.asarray(u, dtype=np.float32)                                     # [N, 2]
-    return mi.Point2f(u[:, 0], u[:, 1])
+    return to_jit(mi.Point2f, u.T)
 
 
 # ---------------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from comgs_dr.core import colorspace as cs
+from comgs_dr.core.hostarray import to_jit
 
 RTOL = 1e-6   # measured max: 6.8e-7 encode (at the 0.0031308 knee, where the two IEC
 #               branches differ), 7.8e-7 Dr.Jit / 7.7e-7 torch float32 decode
@@ -53,8 +54,8 @@ def test_numpy_paths_are_colour_science_with_the_old_semantics():
 def test_drjit_transfers_match_colour_science():
     x = _values()
     xd = x.astype(np.float64)
-    _close(cs.linear_to_srgb(mi.Float(x)), colour.cctf_encoding(xd, function="sRGB"))
-    _close(cs.srgb_to_linear(mi.Float(x)), colour.cctf_decoding(xd, function="sRGB"))
+    _close(cs.linear_to_srgb(to_jit(mi.Float, x)), colour.cctf_encoding(xd, function="sRGB"))
+    _close(cs.srgb_to_linear(to_jit(mi.Float, x)), colour.cctf_decoding(xd, function="sRGB"))
     # documented difference: negatives -> 0 (colour-science extends the linear segment)
     neg = mi.Float([-1.0, -1e-3])
     assert np.all(np.asarray(cs.linear_to_srgb(neg)) == 0) and np.all(np.asarray(cs.srgb_to_linear(neg)) == 0)

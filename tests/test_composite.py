@@ -11,6 +11,7 @@ from PIL import Image
 
 from comgs_dr.core import octahedral as octa
 from comgs_dr.core.cameras import perspective
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.core.similarity import Similarity, euler_xyz_deg, write_placements
 from comgs_dr.emitters.octenvmap import OctEnvmapBase
 from comgs_dr.surfels.params import object_bounds
@@ -85,8 +86,8 @@ def test_shadow_ratio_one_without_occluder_and_ambient_fraction_when_sun_blocked
     m = sun_map(res)
     env = OctEnvmapBase.from_radiance(m)
     n = 64
-    x = mi.Point3f(np.zeros(n), np.zeros(n), np.zeros(n))
-    nz = mi.Vector3f(np.zeros(n), np.zeros(n), np.ones(n))
+    x = to_jit(mi.Point3f, np.zeros((3, n)))
+    nz = to_jit(mi.Vector3f, np.stack([np.zeros(n), np.zeros(n), np.ones(n)]))
     S0 = np.asarray(shadow_ratio(x, nz, env, NoVisibility(), rays=64))
     assert np.all(S0 == 1.0)
     # reference: texel sums over the map of L · cos⁺ · solid angle, sun cone removed
@@ -269,8 +270,8 @@ def test_composite_gradient_wrt_object_albedo_matches_finite_differences(sphere_
     key = "ball.albedo"
     a0 = mi.Color3f(params[key])
     rng = np.random.default_rng(0)
-    v = mi.Color3f(rng.uniform(-1, 1, (3, dr.width(a0))).astype(np.float32))
-    wimg = mi.TensorXf(rng.uniform(0, 1, (24, 24, 3)).astype(np.float32))
+    v = to_jit(mi.Color3f, rng.uniform(-1, 1, (3, dr.width(a0))).astype(np.float32))
+    wimg = to_jit(mi.TensorXf, rng.uniform(0, 1, (24, 24, 3)).astype(np.float32))
 
     def loss(alb, grad=False):
         params[key] = alb

@@ -13,6 +13,7 @@ from PIL import Image
 
 from comgs_dr import cli
 from comgs_dr.core.colorspace import srgb_decode
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.core.similarity import read_placements
 from comgs_dr.data import composition_dataset as cd
 from comgs_dr.data import synthetic_io as sio
@@ -48,8 +49,8 @@ def _erode(m):
 
 def _trace(scene, o, d):
     """First hits: t [N], index into scene.shapes() [N] (-1: none), normals [N, 3]."""
-    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(*o.T.astype(np.float32)),
-                                      mi.Vector3f(*d.T.astype(np.float32))))
+    si = scene.ray_intersect(mi.Ray3f(to_jit(mi.Point3f, o.T),
+                                      to_jit(mi.Vector3f, d.T)))
     idx = np.full(len(d), -1)
     for k, s in enumerate(scene.shapes()):
         idx[np.array(si.shape == mi.ShapePtr(s), bool)] = k

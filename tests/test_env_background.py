@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from comgs_dr.core import cameras
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.emitters.octenvmap import emitter_class
 from comgs_dr.surfels import SurfelParams
 from comgs_dr.surfels.scene import gbuffer_scene
@@ -75,7 +76,7 @@ def test_render_gradient_matches_central_differences(name, h):
     params = mi.traverse(scene)
     rng = np.random.default_rng(7)
     img0 = mi.render(scene)
-    w = mi.TensorXf(rng.normal(size=img0.shape).astype(np.float32))
+    w = to_jit(mi.TensorXf, rng.normal(size=img0.shape).astype(np.float32))
     p = params[name]
     base = np.array(p)
     v = rng.normal(size=base.shape).astype(np.float32)
@@ -87,11 +88,11 @@ def test_render_gradient_matches_central_differences(name, h):
     assert ad != 0.0
 
     def f(x):
-        params[name] = type(p)(np.maximum(x, 0) if name == "environment.data" else x)
+        params[name] = to_jit(type(p), np.maximum(x, 0) if name == "environment.data" else x)
         params.update()
         return _scalar(dr.sum(mi.render(scene) * w, axis=None))
     fd = (f(base + h * v) - f(base - h * v)) / (2 * h)
-    params[name] = type(p)(base)
+    params[name] = to_jit(type(p), base)
     params.update()
     noise = 1e-6 * float(np.abs(np.array(img0) * np.array(w)).sum()) / h
     assert abs(fd - ad) <= RTOL * max(abs(fd), abs(ad)) + noise, f"fd={fd} ad={ad} noise={noise}"
@@ -102,9 +103,9 @@ def test_environment_backward_equals_forward_mode():
     params = mi.traverse(scene)
     rng = np.random.default_rng(8)
     img0 = mi.render(scene)
-    w = mi.TensorXf(rng.normal(size=img0.shape).astype(np.float32))
+    w = to_jit(mi.TensorXf, rng.normal(size=img0.shape).astype(np.float32))
     p = params["environment.data"]
-    v = type(p)(rng.normal(size=np.array(p).shape).astype(np.float32))
+    v = to_jit(type(p), rng.normal(size=np.array(p).shape).astype(np.float32))
     dr.enable_grad(p)
     params.update()
     dr.backward(dr.sum(mi.render(scene, params, seed=1, seed_grad=2) * w, axis=None))

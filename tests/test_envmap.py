@@ -5,12 +5,13 @@ import numpy as np
 import pytest
 
 from comgs_dr.core import octahedral as octa
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.lighting import envmap as em
 
 
 def _vec(a):
     a = np.asarray(a, np.float32)
-    return mi.Vector3f(a[:, 0], a[:, 1], a[:, 2])
+    return to_jit(mi.Vector3f, a.T)
 
 
 def _unit(rng, n):
@@ -122,7 +123,7 @@ def test_sampler_pdf_consistency_and_normalisation(rng):
     env = em.OctEnvmap.from_equirect(_sun_equirect(256, 1e6), res=32)
     sampler = env.sampler()
     u = rng.uniform(0, 1, (20000, 2)).astype(np.float32)
-    s = sampler.sample(mi.Point2f(u[:, 0], u[:, 1]))
+    s = sampler.sample(to_jit(mi.Point2f, u.T))
     pdf_s = np.array(s.pdf)
     pdf_e = np.array(sampler.pdf(s.direction))
     assert np.all(np.isfinite(pdf_s)) and np.all(pdf_s > 0)
@@ -146,14 +147,14 @@ def test_importance_sampled_estimate_is_unbiased(rng):
     n = mi.Vector3f(0.3, 0.2, 0.93)
     n = n / dr.norm(n)
     u = rng.uniform(0, 1, (200000, 2)).astype(np.float32)
-    s = sampler.sample(mi.Point2f(u[:, 0], u[:, 1]))
+    s = sampler.sample(to_jit(mi.Point2f, u.T))
     L = env.eval(s.direction)
     est = np.array(L * dr.maximum(dr.dot(s.direction, n), 0) / s.pdf).mean(1)
     # reference: sum over a fine uv grid of the bilinear map, weighted by the Jacobian
     g = 512
     c = (np.arange(g) + 0.5) / g
     uu, vv = np.meshgrid(c, c)
-    uv = mi.Point2f(uu.ravel().astype(np.float32), vv.ravel().astype(np.float32))
+    uv = to_jit(mi.Point2f, np.stack([uu.ravel(), vv.ravel()]))
     d = octa.uv_to_dir(uv)
     ref = np.array(env.eval(d) * dr.maximum(dr.dot(d, n), 0) * octa.jacobian_uv(uv)).sum(1) / g ** 2
     assert np.allclose(est, ref, rtol=0.03)
@@ -172,7 +173,7 @@ def test_eval_gradient_matches_finite_differences(rng):
         hi, lo = base.copy(), base.copy()
         hi[i] += 1e-2
         lo[i] -= 1e-2
-        f = lambda x: float(dr.sum(dr.sum(env.eval(d, mi.Float(x.astype(np.float32)))))[0])
+        f = lambda x: float(dr.sum(dr.sum(env.eval(d, to_jit(mi.Float, x))))[0])
         fd = (f(hi) - f(lo)) / 2e-2
         assert abs(fd - g[i]) < 2e-3 + 2e-3 * abs(fd)
 
@@ -181,7 +182,7 @@ def test_refresh_clamps_and_restores_border():
     env = em.OctEnvmap.constant(8, 1.0)
     t = np.array(env.theta)
     t[:] = 100.0
-    env.theta = mi.Float(t)
+    env.theta = to_jit(mi.Float, t)
     env.refresh()
     assert np.allclose(np.array(env.theta), em.LOG_RANGE[1])
     assert np.all(np.isfinite(env.radiance_np()))

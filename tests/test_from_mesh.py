@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import comgs_dr
+from comgs_dr.core.hostarray import to_jit
 
 trimesh = pytest.importorskip("trimesh")
 from comgs_dr.data.synthetic import shared_data_dir  # noqa: E402
@@ -231,8 +232,8 @@ def _render_coverage(tm, n, seed=1, res=48):
     W = np.asarray(mi.render(scene, spp=16))[:, :, -1]       # [H, W] weight AOV
     mesh = mi.Mesh("m", len(tm.vertices), len(tm.faces))
     mp = mi.traverse(mesh)
-    mp["vertex_positions"] = mi.Float(np.asarray(tm.vertices, np.float32).ravel())
-    mp["faces"] = mi.UInt32(np.asarray(tm.faces, np.uint32).ravel())
+    mp["vertex_positions"] = to_jit(mi.Float, np.asarray(tm.vertices).ravel())
+    mp["faces"] = to_jit(mi.UInt32, np.asarray(tm.faces).ravel())
     mp.update()
     mscene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 2},
                            "sensor": sensor("rgba"), "m": mesh})

@@ -6,6 +6,7 @@ from conftest import error_chain_text, random_surfels
 from ref_numpy import render_rays
 
 from comgs_dr.core import cameras
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.integrators import surfel_gbuffer as gbuffer
 from comgs_dr.surfels import composite as common
 from comgs_dr.surfels import composite as compositing
@@ -24,7 +25,7 @@ def _rays(rng, n):
 def _fast(params, o, d, K, targets=gbuffer.TARGETS):
     scene = gbuffer_scene(params, cameras.perspective([0, -3, 0], res=4))
     shapes = common.surfel_shapes(scene, "test")
-    ray = mi.Ray3f(mi.Point3f(o.T.astype(np.float32)), mi.Vector3f(d.T.astype(np.float32)))
+    ray = mi.Ray3f(to_jit(mi.Point3f, o.T), to_jit(mi.Vector3f, d.T))
     hits, buf, acc, _ = compositing.trace_composite(scene, shapes, ray, K, 1e-6, targets)
     return hits, buf
 

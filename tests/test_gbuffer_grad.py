@@ -14,6 +14,7 @@ import pytest
 from conftest import random_surfels
 
 from comgs_dr.core import cameras
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.integrators import surfel_gbuffer as gbuffer
 from comgs_dr.surfels import composite as common
 from comgs_dr.surfels import composite as compositing
@@ -40,7 +41,7 @@ def setup():
     o = rng.uniform(-0.2, 0.2, (256, 3)) + np.array([0.0, -3.0, 0.0])
     d = rng.uniform(-0.5, 0.5, (256, 3)) - o
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    ray = mi.Ray3f(mi.Point3f(o.T.astype(np.float32)), mi.Vector3f(d.T.astype(np.float32)))
+    ray = mi.Ray3f(to_jit(mi.Point3f, o.T), to_jit(mi.Vector3f, d.T))
     hits, out, acc, T = compositing.trace_composite(scene, shapes, ray, K, 1e-6, TARGETS)
     assert np.mean(np.array(hits.count) > 1) > 0.3        # enough overlap to test blending
     # Rays with a stored hit near the α ≥ 1/255 cut, the α ≤ 0.99 clamp or the
@@ -66,7 +67,7 @@ def setup():
 
 
 def _as(t, w):
-    return mi.Vector3f(w.astype(np.float32)) if w.shape[0] == 3 else mi.Float(w[0].astype(np.float32))
+    return to_jit(mi.Vector3f, w) if w.shape[0] == 3 else to_jit(mi.Float, w[0])
 
 
 def _objective(out, weights, targets):
@@ -121,11 +122,11 @@ def test_ad_matches_central_differences(setup, target):
         h = STEP[name]
 
         def f(x):
-            setattr(shapes[0].params, name, type(p)(x))      # hit buffer held fixed
+            setattr(shapes[0].params, name, to_jit(type(p), x))      # hit buffer held fixed
             return float(_objective(compositing.composite_unrolled(shapes, ray, hits, (target,)),
                                     weights, (target,))[0])
         fd = (f(base + h * v) - f(base - h * v)) / (2 * h)
-        setattr(shapes[0].params, name, type(p)(base))
+        setattr(shapes[0].params, name, to_jit(type(p), base))
         ad = float(np.dot(g, v.ravel()))
         out = compositing.composite_unrolled(shapes, ray, hits, (target,))
         l_abs = sum(float(np.abs(np.array(out[target]) * weights[t]).sum()) for t in (target,))
@@ -151,11 +152,11 @@ def _render_setup(targets="all", res=12):
 def test_render_backward_equals_forward_mode():
     scene, params, rng = _render_setup()
     img0 = mi.render(scene)
-    w = mi.TensorXf(rng.normal(size=img0.shape).astype(np.float32))
+    w = to_jit(mi.TensorXf, rng.normal(size=img0.shape).astype(np.float32))
     for name in ("surfels.means", "surfels.quats", "surfels.opacity_logit", "surfels.sh",
                  "surfels.albedo"):
         p = params[name]
-        v = type(p)(rng.normal(size=np.array(p).shape).astype(np.float32))
+        v = to_jit(type(p), rng.normal(size=np.array(p).shape).astype(np.float32))
         # reverse mode
         dr.enable_grad(p)
         params.update()
@@ -201,7 +202,7 @@ def test_render_gradient_matches_central_differences(name, h):
     scene, params, rng = _layered_setup()
     img0 = mi.render(scene)
     assert float(np.array(scene.integrator().split(img0)["weight"]).min()) > 0.5  # view covered
-    w = mi.TensorXf(rng.normal(size=img0.shape).astype(np.float32))
+    w = to_jit(mi.TensorXf, rng.normal(size=img0.shape).astype(np.float32))
     p = params[name]
     base = np.array(p)
     v = rng.normal(size=base.shape).astype(np.float32)
@@ -212,11 +213,11 @@ def test_render_gradient_matches_central_differences(name, h):
     dr.disable_grad(p)
 
     def f(x):
-        params[name] = type(p)(x)
+        params[name] = to_jit(type(p), x)
         params.update()
         return _scalar(dr.sum(mi.render(scene) * w, axis=None))
     fd = (f(base + h * v) - f(base - h * v)) / (2 * h)
-    params[name] = type(p)(base)
+    params[name] = to_jit(type(p), base)
     params.update()
     noise = 1e-6 * float(np.abs(np.array(img0) * np.array(w)).sum()) / h
     assert abs(fd - ad) <= RTOL * max(abs(fd), abs(ad)) + noise, f"fd={fd} ad={ad} noise={noise}"

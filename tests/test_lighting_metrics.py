@@ -9,6 +9,7 @@ from comgs_dr.core.equirect import (
     equirect_directions,
     pixel_solid_angles,
 )
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.eval import lighting_metrics as lm
 
 
@@ -209,7 +210,7 @@ class TestSpheres:
         wi /= np.linalg.norm(wi, axis=1, keepdims=True)
 
         def vec(x):
-            return mi.Vector3f(*[mi.Float(x[:, i].astype(np.float32)) for i in range(3)])
+            return to_jit(mi.Vector3f, x.T)
         f0 = [float(x) for x in lm.SILVER_F0]
         _, spec = brdf.eval_brdf_split(mi.Color3f(*f0), mi.Float(lm.SILVER_ROUGHNESS),
                                        mi.Float(1.0), vec(np.tile([0, 0, 1.0], (k, 1))),

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.eval import metrics as M
 from comgs_dr.train import losses as L
 
@@ -70,7 +71,7 @@ def test_numpy_ssim_matches_skimage(name, ref, img):
 @pytest.mark.parametrize("name,ref,img", PAIRS, ids=[p[0] for p in PAIRS])
 def test_drjit_ssim_matches_skimage(name, ref, img):
     mssim, smap = _skimage_ssim(img, ref)
-    a, b = mi.TensorXf(img.astype(np.float32)), mi.TensorXf(ref.astype(np.float32))
+    a, b = to_jit(mi.TensorXf, img), to_jit(mi.TensorXf, ref)
     ours = np.asarray(L.ssim_map(a, b), np.float64)
     inner = (slice(PAD, -PAD), slice(PAD, -PAD))
     # float32: σ² = blur(x²) − μ² cancels, so single pixels of flat regions are off by up

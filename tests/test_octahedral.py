@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from comgs_dr.core import octahedral as octa
+from comgs_dr.core.hostarray import to_jit
 
 
 def _unit(rng, n):
@@ -14,7 +15,7 @@ def _unit(rng, n):
 
 def _vec(a):
     a = np.asarray(a, np.float32)
-    return mi.Vector3f(a[:, 0], a[:, 1], a[:, 2])
+    return to_jit(mi.Vector3f, a.T)
 
 
 def test_round_trip_dir_uv_dir(rng):
@@ -46,7 +47,7 @@ def test_jacobian_integrates_to_4pi_and_matches_finite_differences(rng):
         return octa.uv_to_dir_np(uv + o)
     a, b, c = dirs((0, 0)), dirs((h, 0)), dirs((0, h))
     area = np.linalg.norm(np.cross(b - a, c - a), axis=1) / h ** 2
-    jac = np.array(octa.jacobian_uv(mi.Point2f(uv[:, 0], uv[:, 1])))
+    jac = np.array(octa.jacobian_uv(to_jit(mi.Point2f, uv.T)))
     # skip points within 2h of a fold line (|p.x|+|p.y| = 1 or p.x/p.y = 0)
     p = 2 * uv - 1
     ok = (np.abs(np.abs(p).sum(1) - 1) > 1e-3) & (np.abs(p).min(1) > 1e-3)
@@ -88,7 +89,7 @@ def _smooth(d):
 def test_bilinear_lookup_is_seamless(rng, channels):
     r = 16
     tiles = _smooth(octa.texel_directions_np(r))[:, :channels].reshape(1, r, r, channels)
-    atlas = mi.Float(octa.add_border_np(tiles).ravel().astype(np.float32))
+    atlas = to_jit(mi.Float, octa.add_border_np(tiles).ravel())
     # directions concentrated near the seams: the equator's fold and the -Z vertex
     d = _unit(rng, 4000)
     d[:2000, 2] *= 0.02
@@ -115,11 +116,11 @@ def test_bilinear_lookup_is_seamless(rng, channels):
 def test_lookup_reproduces_texel_centres_and_multi_tile(rng):
     r, p = 4, 3
     tiles = rng.uniform(0, 1, (p, r, r, 3))
-    atlas = mi.Float(octa.add_border_np(tiles).ravel().astype(np.float32))
+    atlas = to_jit(mi.Float, octa.add_border_np(tiles).ravel())
     c = (np.arange(r) + 0.5) / r
     u, v = np.meshgrid(c, c)
-    uv = mi.Point2f(np.tile(u.ravel(), p), np.tile(v.ravel(), p))
-    tile = mi.UInt32(np.repeat(np.arange(p), r * r))
+    uv = to_jit(mi.Point2f, np.stack([np.tile(u.ravel(), p), np.tile(v.ravel(), p)]))
+    tile = to_jit(mi.UInt32, np.repeat(np.arange(p), r * r))
     got = np.array(octa.lookup(atlas, octa.bilinear_taps(tile, uv, r), 3)).T
     assert np.allclose(got, tiles.reshape(-1, 3), atol=1e-6)
     near = np.array(octa.lookup_nearest(atlas, tile, uv, r, 3)).T
@@ -134,20 +135,20 @@ def test_border_refresher_matches_numpy(rng):
     scrambled[:, 0, :] = -5
     scrambled[:, :, -1] = 7
     ref = octa.BorderRefresher(p, r, ch)
-    out = np.array(ref(mi.Float(scrambled.ravel().astype(np.float32))))
+    out = np.array(ref(to_jit(mi.Float, scrambled.ravel())))
     assert np.allclose(out, bordered.ravel(), atol=1e-7)
     with pytest.raises(ValueError, match="expected"):
-        ref(mi.Float(np.zeros(5, np.float32)))
+        ref(to_jit(mi.Float, np.zeros(5, np.float32)))
 
 
 def test_lookup_gradient_matches_finite_differences(rng):
     r = 4
     tiles = rng.uniform(0, 1, (1, r, r, 1))
-    interior = mi.Float(tiles.ravel().astype(np.float32))
-    src = mi.UInt32(octa.border_source_index(r).astype(np.uint32))
+    interior = to_jit(mi.Float, tiles.ravel())
+    src = to_jit(mi.UInt32, octa.border_source_index(r))
     d = _unit(rng, 64)
     uv = octa.dir_to_uv(_vec(d))
-    w = mi.Float(rng.uniform(0.5, 1.5, 64).astype(np.float32))
+    w = to_jit(mi.Float, rng.uniform(0.5, 1.5, 64).astype(np.float32))
 
     def loss(x):
         atlas = dr.gather(mi.Float, x, src)     # border built inside the graph here
@@ -163,8 +164,8 @@ def test_lookup_gradient_matches_finite_differences(rng):
         hi, lo = base.copy(), base.copy()
         hi[i] += eps
         lo[i] -= eps
-        fd = (float(loss(mi.Float(hi.astype(np.float32)))[0])
-              - float(loss(mi.Float(lo.astype(np.float32)))[0])) / (2 * eps)
+        fd = (float(loss(to_jit(mi.Float, hi))[0])
+              - float(loss(to_jit(mi.Float, lo))[0])) / (2 * eps)
         assert abs(fd - g[i]) < 1e-3 + 1e-3 * abs(fd)
 
 

@@ -7,6 +7,7 @@ import pytest
 
 from comgs_dr.core import octahedral as octa
 from comgs_dr.core.equirect import equirect_uv_to_dir_np
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.emitters.octenvmap import OctEnvmapBase, is_octenvmap
 from comgs_dr.lighting.envmap import equirect_to_oct_np, write_exr
 
@@ -54,7 +55,7 @@ def test_pdf_is_exact_per_texel_and_weight_is_radiance_over_pdf():
     em = OctEnvmapBase.from_radiance(_sun_map(R), to_world=rot)
     c = (np.arange(R * sub) + 0.5) / (R * sub)
     u, v = np.meshgrid(c, c)
-    uv = mi.Point2f(u.ravel(), v.ravel())
+    uv = to_jit(mi.Point2f, np.stack([u.ravel(), v.ravel()]))
     d = mi.Transform4f(rot) @ octa.uv_to_dir(uv)
     ds = dr.zeros(mi.DirectionSample3f, R * R * sub * sub)
     ds.d = d
@@ -65,7 +66,7 @@ def test_pdf_is_exact_per_texel_and_weight_is_radiance_over_pdf():
     assert np.allclose(per_texel, em.sampler.pmf_np, rtol=2e-3, atol=1e-7)
     n = 200_000
     it = dr.zeros(mi.Interaction3f)
-    ds, wgt = em.sample_direction(it, mi.Point2f(np.random.default_rng(1).random((2, n))))
+    ds, wgt = em.sample_direction(it, to_jit(mi.Point2f, np.random.default_rng(1).random((2, n))))
     t = np.floor(np.asarray(ds.uv).T * R).astype(int).clip(0, R - 1)
     counts = np.bincount(t[:, 1] * R + t[:, 0], minlength=R * R)
     expected = em.sampler.pmf_np * n
@@ -123,9 +124,9 @@ def test_parameters_update_the_sampler_and_lookups():
     p = mi.traverse(scene)
     new = np.ones((8, 8, 3), np.float32)
     new[2, 5] = 1e6                                   # HDR up to 1e6
-    p["env.data"] = mi.TensorXf(new)
+    p["env.data"] = to_jit(mi.TensorXf, new)
     p.update()
-    u = mi.Point2f(np.random.default_rng(0).random((2, 2000)))
+    u = to_jit(mi.Point2f, np.random.default_rng(0).random((2, 2000)))
     ds, wgt = em.sample_direction(dr.zeros(mi.Interaction3f), u)
     texel = np.asarray(ds.uv).T * 8
     near = (np.abs(texel[:, 0].astype(int) - 5) <= 1) & (np.abs(texel[:, 1].astype(int) - 2) <= 1)
@@ -134,7 +135,7 @@ def test_parameters_update_the_sampler_and_lookups():
     with pytest.raises(ValueError, match="non-finite"):
         bad = new.copy()
         bad[0, 0, 0] = np.nan
-        p["env.data"] = mi.TensorXf(bad)
+        p["env.data"] = to_jit(mi.TensorXf, bad)
         p.update()
 
 

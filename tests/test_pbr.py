@@ -4,6 +4,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.lighting.envmap import OctEnvmap
 from comgs_dr.shading.shade import ShadingConfig, ShadingPoints, shade
 from comgs_dr.shading.visibility import NoVisibility, SopVisibility, TraceVisibility
@@ -11,7 +12,7 @@ from comgs_dr.shading.visibility import NoVisibility, SopVisibility, TraceVisibi
 
 def _v(a):
     a = np.asarray(a, np.float32)
-    return mi.Vector3f(a[:, 0], a[:, 1], a[:, 2])
+    return to_jit(mi.Vector3f, a.T)
 
 
 def _points(n, normal=(0, 0, 1), wo=None, albedo=0.8, rough=0.5, metal=0.0, pos=None):
@@ -196,11 +197,11 @@ def test_gradients_materials_env_and_atlas(rng):
     wts = rng.uniform(0.5, 1.5, (3, m)).astype(np.float32)
 
     def loss(vals, grad=None):
-        a = mi.Float(vals["albedo"].astype(np.float32))
-        r = mi.Float(vals["roughness"].astype(np.float32))
-        mt = mi.Float(vals["metallic"].astype(np.float32))
-        th = mi.Float(vals["env"].astype(np.float32))
-        at = mi.Float(vals["atlas"].astype(np.float32))
+        a = to_jit(mi.Float, vals["albedo"])
+        r = to_jit(mi.Float, vals["roughness"])
+        mt = to_jit(mi.Float, vals["metallic"])
+        th = to_jit(mi.Float, vals["env"])
+        at = to_jit(mi.Float, vals["atlas"])
         if grad is not None:
             dr.enable_grad(a, r, mt, th, at)
         pts = _points(m, wo=wo, pos=x)
@@ -208,7 +209,7 @@ def test_gradients_materials_env_and_atlas(rng):
         pts.roughness, pts.metallic = r, mt
         c = shade(pts, env, SopVisibility(at, grid, 4, k=2), ShadingConfig(rays=32), seed=3,
                   env_theta=th)
-        val = dr.sum(dr.sum(c * mi.Color3f(*wts)))
+        val = dr.sum(dr.sum(c * to_jit(mi.Color3f, wts)))
         if grad is not None:
             dr.backward(val)
             grad.update(albedo=np.asarray(dr.grad(a)), roughness=np.asarray(dr.grad(r)),

@@ -5,6 +5,7 @@ import json
 import numpy as np
 import pytest
 
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.core.similarity import euler_xyz_deg, from_entry, from_matrix, read_placements, \
     write_placements
 
@@ -71,7 +72,7 @@ def test_transform_surfels_matches_transformed_geometry(rng):
     assert np.allclose(b["log_scales"], a["log_scales"] + np.log(1.7), atol=1e-6)
 
     def frame(p):
-        tu, tv, n = K.quat_frame(mi.Vector4f(*p["quats"].T))
+        tu, tv, n = K.quat_frame(to_jit(mi.Vector4f, p["quats"].T))
         return [np.asarray(v).T for v in (tu, tv, n)]
     for f0, f1 in zip(frame(a), frame(b)):
         assert np.allclose(f1, sim.directions(f0), atol=1e-5)
@@ -80,7 +81,7 @@ def test_transform_surfels_matches_transformed_geometry(rng):
     d /= np.linalg.norm(d, axis=1, keepdims=True)
 
     def colour(p, dirs):
-        basis = np.stack([np.asarray(x) for x in K.sh_basis(mi.Vector3f(*dirs.T.astype(np.float32)), 3)], 1)
+        basis = np.stack([np.asarray(x) for x in K.sh_basis(to_jit(mi.Vector3f, dirs.T), 3)], 1)
         return np.einsum("nk,nkc->nc", basis, p["sh"])
     assert np.allclose(colour(b, sim.directions(d)), colour(a, d), atol=1e-4)
     dr.eval()

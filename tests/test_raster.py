@@ -20,6 +20,7 @@ import pytest
 from conftest import error_chain_text, random_surfels
 
 from comgs_dr.core import cameras
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.surfels import SurfelParams, composite, raster
 from comgs_dr.surfels import kernel as Kn
 from comgs_dr.surfels.scene import gbuffer_scene
@@ -73,8 +74,8 @@ def _camera_rays(scene, seed=0):
     W, H = film.crop_size()
     spp = sampler.sample_count()
     idx = np.arange(W * H * spp) // spp
-    pix = mi.Vector2u(mi.UInt32(idx % W + film.crop_offset()[0]),
-                      mi.UInt32(idx // W + film.crop_offset()[1]))
+    pix = to_jit(mi.Vector2u, np.stack([idx % W + film.crop_offset()[0],
+                                        idx // W + film.crop_offset()[1]]))
     return sensor, ray, pix
 
 
@@ -352,7 +353,7 @@ def test_raster_gradient_matches_central_differences(name, h):
     img0 = mi.render(scene)
     assert float(np.array(scene.integrator().split(img0)["weight"]).min()) > 0.5
     rng = np.random.default_rng(11)
-    w = mi.TensorXf(rng.normal(size=img0.shape).astype(np.float32))
+    w = to_jit(mi.TensorXf, rng.normal(size=img0.shape).astype(np.float32))
     p = params[name]
     base = np.array(p)
     v = rng.normal(size=base.shape).astype(np.float32)
@@ -360,11 +361,11 @@ def test_raster_gradient_matches_central_differences(name, h):
     ad = float(np.dot(g, v.ravel()))
 
     def f(x):
-        params[name] = type(p)(x)
+        params[name] = to_jit(type(p), x)
         params.update()
         return _scalar(dr.sum(mi.render(scene) * w, axis=None))
     fd = (f(base + h * v) - f(base - h * v)) / (2 * h)
-    params[name] = type(p)(base)
+    params[name] = to_jit(type(p), base)
     params.update()
     # float32 rounding of the two sums: a few ulps of Σ|w·B|, divided by 2h
     noise = 2e-7 * float(np.abs(np.array(img0) * np.array(w)).sum()) / h
@@ -380,7 +381,7 @@ def test_raster_forward_equals_reverse_mode():
     """<w, J v> by dr.forward_to (render_forward) = <Jᵀ w, v> by dr.backward, raster path."""
     scene, params = _grad_scene("raster")
     rng = np.random.default_rng(12)
-    w = mi.TensorXf(rng.normal(size=mi.render(scene).shape).astype(np.float32))
+    w = to_jit(mi.TensorXf, rng.normal(size=mi.render(scene).shape).astype(np.float32))
     for name in ("surfels.means", "surfels.quats", "surfels.log_scales", "surfels.opacity_logit",
                  "surfels.sh"):
         p = params[name]
@@ -388,7 +389,7 @@ def test_raster_forward_equals_reverse_mode():
         rev = float(np.dot(_ad_gradient(scene, params, name, w), v.ravel()))
         dr.enable_grad(p)
         params.update()
-        dr.set_grad(p, type(p)(v))
+        dr.set_grad(p, to_jit(type(p), v))
         fwd = _scalar(dr.sum(dr.forward_to(mi.render(scene, params)) * w, axis=None))
         dr.disable_grad(p)
         params.update()
@@ -425,7 +426,7 @@ def test_quat_helper():
     from comgs_dr.surfels.kernel import quat_frame
     nrm = np.array([[0.3, -1.0, 0.2], [0, 0, 1], [0, 0, -1], [1, 0, 0]], np.float64)
     q = np.array([_quat_to(v) for v in nrm]).astype(np.float32)
-    n = np.array(quat_frame(mi.Vector4f(q.T))[2]).T
+    n = np.array(quat_frame(to_jit(mi.Vector4f, q.T))[2]).T
     np.testing.assert_allclose(n, nrm / np.linalg.norm(nrm, axis=1, keepdims=True), atol=1e-6)
 
 
@@ -681,7 +682,7 @@ def test_pinhole_view_round_trip(pp, crop):
     assert abs(view.near - 0.05) < 1e-6
     pos = np.array(pix, np.float64).T + 0.5
     if not crop:
-        ray2, _ = sensor.sample_ray(0.0, 0.0, mi.Point2f(pos[:, 0] / 40, pos[:, 1] / 24),
+        ray2, _ = sensor.sample_ray(0.0, 0.0, to_jit(mi.Point2f, (pos / [40, 24]).T),
                                     mi.Point2f(0.5))
         np.testing.assert_allclose(np.array(ray2.d), np.array(ray.d), atol=1e-6)
     o = np.array(ray.o, np.float64).T

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.data import load as D
 
 TOL_PX = 0.5
@@ -68,12 +69,12 @@ def assert_projects(cam: D.Camera, X, uv_expected):
     np.testing.assert_allclose(uv, uv_expected, atol=TOL_PX)
     sensor = mi.load_dict(cam.sensor_dict())
     it = dr.zeros(mi.Interaction3f, len(X))
-    it.p = mi.Point3f(*[np.asarray(X, np.float32)[:, i] for i in range(3)])
+    it.p = to_jit(mi.Point3f, np.asarray(X).T)
     ds, _ = sensor.sample_direction(it, mi.Point2f(0.5, 0.5))
     np.testing.assert_allclose(np.stack([ds.uv.x.numpy(), ds.uv.y.numpy()], 1),
                                uv_expected, atol=TOL_PX)
     pos = np.asarray(uv_expected, np.float32) / [cam.width, cam.height]
-    ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(pos[:, 0], pos[:, 1]), mi.Point2f(0.5, 0.5))
+    ray, _ = sensor.sample_ray(0.0, 0.5, to_jit(mi.Point2f, pos.T), mi.Point2f(0.5, 0.5))
     o = np.stack([c.numpy() for c in (ray.o.x, ray.o.y, ray.o.z)], 1)
     d = np.stack([c.numpy() for c in (ray.d.x, ray.d.y, ray.d.z)], 1)
     v = np.asarray(X) - o

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from comgs_dr.core import cameras
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.data.types import project
 from comgs_dr.train import init as I
 
@@ -20,7 +21,7 @@ def test_projection_matches_mitsuba_rays(rng):
     cam = _cam([1.0, -3.0, 1.5], [0.1, 0.2, 0.0])
     sensor = mi.load_dict(cameras.from_matrix(cam.to_world, cam.fov_x_deg, (cam.width, cam.height)))
     px = rng.uniform(0, 1, (50, 2)) * [cam.width, cam.height]
-    ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f((px / [cam.width, cam.height]).T.astype(np.float32)),
+    ray, _ = sensor.sample_ray(0.0, 0.5, to_jit(mi.Point2f, (px / [cam.width, cam.height]).T),
                                mi.Point2f(0.5))
     t = rng.uniform(1, 4, 50)
     pts = np.asarray(ray.o).T + np.asarray(ray.d).T * t[:, None]
@@ -39,7 +40,7 @@ def test_visual_hull_of_a_sphere(rng):
         # ray-sphere test per pixel through the camera model itself
         g = np.stack([xx.ravel(), yy.ravel()], 1)
         sensor = mi.load_dict(cameras.from_matrix(cam.to_world, 40, 32))
-        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f((g / 32).T.astype(np.float32)), mi.Point2f(0.5))
+        ray, _ = sensor.sample_ray(0.0, 0.5, to_jit(mi.Point2f, (g / 32).T), mi.Point2f(0.5))
         oo, dd = np.asarray(ray.o).T, np.asarray(ray.d).T
         b = (oo * dd).sum(1)
         disc = b * b - ((oo * oo).sum(1) - 0.25)
@@ -63,7 +64,7 @@ def _rod_and_ball_views(n_views=12, res=40):
         sensor = mi.load_dict(cameras.from_matrix(cam.to_world, 40, res))
         yy, xx = np.mgrid[0:4 * res, 0:4 * res] + 0.5
         g = np.stack([xx.ravel(), yy.ravel()], 1) / (4 * res)
-        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(g.T.astype(np.float32)), mi.Point2f(0.5))
+        ray, _ = sensor.sample_ray(0.0, 0.5, to_jit(mi.Point2f, g.T), mi.Point2f(0.5))
         oo, dd = np.asarray(ray.o).T, np.asarray(ray.d).T
         b = (oo * dd).sum(1)
         ball = b * b - ((oo * oo).sum(1) - 0.16) > 0

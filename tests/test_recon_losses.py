@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from comgs_dr.core import cameras
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.surfels.scene import gbuffer_scene
 from comgs_dr.train import losses as L
 
@@ -43,7 +44,7 @@ def ssim_torch(img1, img2, window=11, sigma=1.5):
 
 
 def _t(a):
-    return mi.TensorXf(np.ascontiguousarray(a, dtype=np.float32))
+    return to_jit(mi.TensorXf, a)
 
 
 def _f(x) -> float:
@@ -220,7 +221,7 @@ def test_camera_rays_through_pixel_centres_with_principal_point():
     assert np.all(t_near >= 0.01 - 1e-6) and np.all(t_near < 0.02)
     p = (on + 2.5 * dn).reshape(-1, 3)
     it = dr.zeros(mi.Interaction3f, p.shape[0])
-    it.p = mi.Point3f(p.T.astype(np.float32))
+    it.p = to_jit(mi.Point3f, p.T)
     ds, _ = sensor.sample_direction(it, mi.Point2f(0.5))
     uv = np.array(ds.uv).T.reshape(8, 12, 2)
     yy, xx = np.mgrid[0:8, 0:12]

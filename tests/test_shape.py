@@ -8,6 +8,7 @@ import pytest
 from conftest import error_chain_text, random_surfels
 
 from comgs_dr.core import cameras
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.surfels import SurfelParams, save_ply
 from comgs_dr.surfels.scene import gbuffer_scene
 from comgs_dr.surfels.shape import ensure_proxies, is_surfel_shape
@@ -71,7 +72,7 @@ def test_update_moves_geometry_and_changes_count(rng):
     assert shape.face_count() == 150 and shape.vertex_count() == 300 and not shape.proxies_stale
     assert np.array(mi.render(scene))[..., 3].max() > 0
     # inconsistent counts are refused with the parameter named
-    params["obj.opacity_logit"] = mi.Float(np.zeros(10, np.float32))
+    params["obj.opacity_logit"] = to_jit(mi.Float, np.zeros(10, np.float32))
     with pytest.raises(Exception) as ei:
         params.update()
     assert "has 75 entries but 'opacity_logit' has 10" in error_chain_text(ei.value)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from comgs_dr.core.cameras import perspective
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.emitters.octenvmap import OctEnvmapBase
 from comgs_dr.sops.bake import bake
 from comgs_dr.sops.probes import ProbeSet
@@ -57,7 +58,7 @@ def _grad_and_fd(scene, key, index, eps, seed_grad=7):
     """AD gradient (through mi.render) and central differences of L = Σ w·image at one
     scalar of parameter ``key``, with the differential pass's seed for the FD renders."""
     params = mi.traverse(scene)
-    w = mi.TensorXf(np.random.default_rng(1).uniform(0.5, 1.5, (16, 16, 3)).astype(np.float32))
+    w = to_jit(mi.TensorXf, np.random.default_rng(1).uniform(0.5, 1.5, (16, 16, 3)).astype(np.float32))
     x0 = np.array(params[key], np.float32).copy()
     flat_shape = x0.shape
     dr.enable_grad(params[key])
@@ -83,7 +84,7 @@ def _grad_and_fd(scene, key, index, eps, seed_grad=7):
 
 def _like(cur, arr):
     """``arr`` (as ``np.array(cur)`` gives it: [3, N] for Color3f) back into cur's type."""
-    return type(cur)(np.ascontiguousarray(arr, np.float32))
+    return to_jit(type(cur), arr)
 
 
 @pytest.mark.parametrize("key,eps", [("obj.albedo", 1e-2), ("obj.roughness", 1e-2),
@@ -96,7 +97,7 @@ def test_fd_gradients_through_mi_render(probe_file, key, eps):
     params = mi.traverse(scene)
     dr.enable_grad(params[key])
     params.update()
-    w = mi.TensorXf(np.random.default_rng(1).uniform(0.5, 1.5, (16, 16, 3)).astype(np.float32))
+    w = to_jit(mi.TensorXf, np.random.default_rng(1).uniform(0.5, 1.5, (16, 16, 3)).astype(np.float32))
     img = mi.render(scene, params, seed=1, seed_grad=7)
     dr.backward(dr.sum(w * img, axis=None))
     g = np.array(dr.grad(params[key])).ravel()
@@ -115,7 +116,7 @@ def test_forward_mode_matches_reverse_mode(probe_file):
     params.update()
     n = dr.width(params[key])
     direction = np.random.default_rng(2).normal(size=(3, n)).astype(np.float32)
-    dr.set_grad(params[key], mi.Color3f(direction))
+    dr.set_grad(params[key], to_jit(mi.Color3f, direction))
     img = mi.render(scene, params, seed=1, seed_grad=5)
     dr.forward_to(img)
     fwd = float(np.sum(np.asarray(dr.grad(img), np.float64)))
@@ -141,7 +142,7 @@ def test_geometry_cache_survives_material_updates_only(probe_file):
     assert next(iter(integ._pbr._geo.values())) is first          # reused
     means = np.asarray(params["obj.means"]).T.copy()
     means[:, 0] += 0.2
-    params["obj.means"] = mi.Point3f(means.T.astype(np.float32))
+    params["obj.means"] = to_jit(mi.Point3f, means.T)
     params.update()
     img_b = np.asarray(mi.render(scene))
     assert next(iter(integ._pbr._geo.values())) is not first      # re-traced

@@ -4,6 +4,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.sops.query import (
     BACKFACE_FLOOR,
     EPS_REL,
@@ -17,8 +18,7 @@ from comgs_dr.sops.query import (
 def to_mi(pts, normals):
     pts = np.asarray(pts, np.float32).reshape(-1, 3)
     normals = np.asarray(normals, np.float32).reshape(-1, 3)
-    return (mi.Point3f(pts[:, 0], pts[:, 1], pts[:, 2]),
-            mi.Vector3f(normals[:, 0], normals[:, 1], normals[:, 2]))
+    return to_jit(mi.Point3f, pts.T), to_jit(mi.Vector3f, normals.T)
 
 
 def unit(v):
@@ -197,27 +197,27 @@ def test_gradient_through_interpolate(rng):
     vals_np = rng.normal(size=(P, 3)).astype(np.float32)
 
     # scalar per-probe values
-    vals = mi.Float(vals_np[:, 0])
+    vals = to_jit(mi.Float, vals_np[:, 0])
     dr.enable_grad(vals)
     out = interpolate(res, vals)
-    dr.backward(dr.sum(out * mi.Float(c[:, 0])))
+    dr.backward(dr.sum(out * to_jit(mi.Float, c[:, 0])))
     np.testing.assert_allclose(np.asarray(out), (w * vals_np[idx, 0]).sum(1), atol=1e-5)
     want = np.zeros(P)
     np.add.at(want, idx.ravel(), (w * c[:, :1]).ravel())
     np.testing.assert_allclose(np.asarray(dr.grad(vals)), want, atol=1e-5)
 
     # colour per probe
-    col = mi.Color3f(vals_np[:, 0], vals_np[:, 1], vals_np[:, 2])
+    col = to_jit(mi.Color3f, vals_np.T)
     dr.enable_grad(col)
     out = interpolate(res, col)
-    dr.backward(dr.sum(dr.dot(out, mi.Color3f(c[:, 0], c[:, 1], c[:, 2]))))
+    dr.backward(dr.sum(dr.dot(out, to_jit(mi.Color3f, c.T))))
     g = dr.grad(col)
     for ch in range(3):
         want = np.zeros(P)
         np.add.at(want, idx.ravel(), (w * c[:, ch:ch + 1]).ravel())
         np.testing.assert_allclose(np.asarray(g[ch]), want, atol=1e-5)
     with pytest.raises(ValueError, match="one entry per probe"):
-        interpolate(res, mi.Float(np.zeros(P + 1, np.float32)))
+        interpolate(res, to_jit(mi.Float, np.zeros(P + 1, np.float32)))
 
 
 def test_hashed_grid_matches_brute_force(rng):

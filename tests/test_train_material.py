@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 from conftest import make_tiny_step1_run
 
+from comgs_dr.core.hostarray import to_jit
+
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
@@ -109,14 +111,14 @@ def test_white_prior_value_gradient_and_effect(tiny_run):
     theta = np.log(rng.uniform(0.2, 2.0, (16 * 16, 3)) * [1.0, 0.6, 0.3]).astype(np.float32)
 
     def prior(th):
-        tr.opt[ENV_KEY] = mi.Float(th.ravel())
+        tr.opt[ENV_KEY] = to_jit(mi.Float, th.ravel())
         return tr._white_prior()
     e = np.exp(theta.astype(np.float64))
     w = e.sum(1) / e.sum()
     ref = (w * ((theta - theta.mean(1, keepdims=True)) ** 2).sum(1)).sum()
     assert abs(float(prior(theta)[0]) - ref) < 1e-4 * ref
     assert float(prior(np.zeros_like(theta))[0]) < 1e-10            # grey: no cost
-    tr.opt[ENV_KEY] = mi.Float(theta.ravel())           # the optimiser's variable has AD on
+    tr.opt[ENV_KEY] = to_jit(mi.Float, theta.ravel())   # the optimiser's variable has AD on
     dr.backward(tr._white_prior())
     v = rng.normal(size=theta.size).astype(np.float32)
     ad = float(np.dot(np.array(dr.grad(tr.opt[ENV_KEY])), v))

@@ -27,6 +27,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from comgs_dr.core.hostarray import to_jit
+
 # ---------------------------------------------------------------------------------------
 # Direction <-> octahedral square (Dr.Jit, any JIT variant, differentiable)
 
@@ -188,7 +190,7 @@ class BorderRefresher:
     def __init__(self, n_tiles: int, res: int, channels: int):
         idx = border_gather_index(n_tiles, res)                        # [P*(R+2)²]
         full = (idx[:, None] * channels + np.arange(channels)[None]).ravel()
-        self.index = mi.UInt32(full.astype(np.uint32))
+        self.index = to_jit(mi.UInt32, full)
         self.size = n_tiles * (res + 2) ** 2 * channels
 
     def __call__(self, atlas):
@@ -208,7 +210,7 @@ class BorderGather:
         src = border_source_index(res)                                   # [(R+2)²]
         texel = (np.arange(n_tiles)[:, None] * res * res + src[None, :]).ravel()
         full = (texel[:, None] * channels + np.arange(channels)[None]).ravel()
-        self.index = mi.UInt32(full.astype(np.uint32))
+        self.index = to_jit(mi.UInt32, full)
         self.size = n_tiles * res * res * channels
 
     def __call__(self, interior):

@@ -35,6 +35,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core.colorspace import LUMA, srgb_encode
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.core.similarity import Similarity, write_placements
 from comgs_dr.core.variant import package_version
 from comgs_dr.data import synthetic as syn
@@ -296,7 +297,8 @@ class SceneRenderer(sio.Renderer):
         w, h = self.sensor.film().crop_size()
         iy, ix, sy, sx = np.meshgrid(np.arange(h), np.arange(w), np.arange(ss), np.arange(ss),
                                      indexing="ij")
-        pos = mi.Point2f(((ix + (sx + 0.5) / ss) / w).ravel(), ((iy + (sy + 0.5) / ss) / h).ravel())
+        pos = to_jit(mi.Point2f, np.stack([((ix + (sx + 0.5) / ss) / w).ravel(),
+                                           ((iy + (sy + 0.5) / ss) / h).ravel()]))
         ray, _ = self.sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
         si = self.scene.ray_intersect(ray)
         hit = np.zeros(w * h * ss * ss, bool)

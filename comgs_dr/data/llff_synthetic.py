@@ -37,6 +37,7 @@ import numpy as np
 
 from comgs_dr.core.cameras import camera_rays
 from comgs_dr.core.colorspace import srgb_encode
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.data.images import downscale, write_png8
 from comgs_dr.data.synthetic_io import activate_variant
 from comgs_dr.data.types import MITSUBA_FROM_LLFF, Camera
@@ -196,8 +197,7 @@ def z_depths(scene, cam: Camera) -> np.ndarray:
     d, o = camera_rays(cam.sensor_dict())
     d = np.asarray(d, np.float64).reshape(-1, 3)
     o = np.asarray(o, np.float64).reshape(-1, 3)
-    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(o.T.astype(np.float32)),
-                                      mi.Vector3f(d.T.astype(np.float32))))
+    si = scene.ray_intersect(mi.Ray3f(to_jit(mi.Point3f, o.T), to_jit(mi.Vector3f, d.T)))
     t = np.where(np.asarray(si.is_valid()), np.asarray(si.t, np.float64), np.inf)
     p = o + d * t[:, None]
     z = (p - cam.center) @ cam.to_world[:3, 2]

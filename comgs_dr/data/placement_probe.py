@@ -31,6 +31,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core.equirect import pixel_directions
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.core.similarity import read_placements
 from comgs_dr.data import composition_dataset as comp
 from comgs_dr.lighting.envmap import load_envmap, write_exr
@@ -69,8 +70,7 @@ def render_probe(scene: "mi.Scene", position, height: int = 128, spp_side: int =
         p1 = min(n, p0 + step)
         m = (p1 - p0) * k * k
         d = pixel_directions(w, h, p0, p1, k, rng, equal_area=True).astype(np.float32)
-        ray = mi.Ray3f(mi.Point3f(*[np.full(m, c, np.float32) for c in p]),
-                       mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
+        ray = mi.Ray3f(to_jit(mi.Point3f, np.repeat(p[:, None], m, 1)), to_jit(mi.Vector3f, d.T))
         sampler.seed(seed * 1_000_003 + p0, m)
         spec, _, _ = integ.sample(scene, sampler, ray)
         rgb = mi.Color3f(spec)

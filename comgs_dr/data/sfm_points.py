@@ -15,6 +15,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core.colorspace import srgb_encode
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.data.types import project
 
 
@@ -44,7 +45,7 @@ def sample_visible_points(scene, cameras: list[dict], images: list[np.ndarray], 
             sel = np.nonzero(which == k)[0]
             if not len(sel):
                 continue
-            ps = s.sample_position(0.0, mi.Point2f(rng.random(len(sel)), rng.random(len(sel))))
+            ps = s.sample_position(0.0, to_jit(mi.Point2f, rng.random((2, len(sel)))))
             p[sel] = np.asarray(ps.p).T if np.asarray(ps.p).ndim == 2 else np.asarray(ps.p)
             nrm[sel] = np.asarray(ps.n).T if np.asarray(ps.n).ndim == 2 else np.asarray(ps.n)
         seen = np.zeros(m, np.int32)
@@ -57,8 +58,8 @@ def sample_visible_points(scene, cameras: list[dict], images: list[np.ndarray], 
             d /= np.maximum(dist, 1e-12)[:, None]
             front = (d * nrm).sum(1)
             origin = p + np.sign(front)[:, None] * 1e-4 * radius * nrm
-            ray = mi.Ray3f(mi.Point3f(*origin.T.astype(np.float32)), mi.Vector3f(*d.T.astype(np.float32)))
-            ray.maxt = mi.Float((dist * (1 - 1e-4)).astype(np.float32))
+            ray = mi.Ray3f(to_jit(mi.Point3f, origin.T), to_jit(mi.Vector3f, d.T))
+            ray.maxt = to_jit(mi.Float, dist * (1 - 1e-4))
             vis = ok & ~np.asarray(scene.ray_test(ray), bool)
             seen += vis
             first = vis & np.isnan(color[:, 0])

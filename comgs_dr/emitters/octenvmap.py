@@ -14,6 +14,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core import octahedral as octa
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.core.variant import is_kind, variant_class
 from comgs_dr.lighting.envmap import EnvSampler, equirect_to_oct_np, oct_to_equirect_np, \
     read_envmap_file
@@ -96,9 +97,9 @@ class OctEnvmapBase:
                              f"no mirror); got the 3×3 part {np.round(m, 4).tolist()}")
         self.floor = float(props.get("sampling_floor", 1e-3))
         self.res = radiance.shape[0]
-        self.data = mi.TensorXf((radiance * scale).astype(np.float32))
+        self.data = to_jit(mi.TensorXf, radiance * scale)
         # bordered texel -> interior texel it copies (bilinear lookups never branch)
-        self._src = mi.UInt32(octa.border_source_index(self.res).astype(np.uint32))
+        self._src = to_jit(mi.UInt32, octa.border_source_index(self.res))
         self.center, self.radius = mi.ScalarPoint3f(0.0), 1.0
         self._build_sampler()
 
@@ -132,7 +133,7 @@ class OctEnvmapBase:
             raise ValueError(f"octenvmap: 'data' must stay [R, R, 3], got {shape}")
         if shape[0] != self.res:
             self.res = shape[0]
-            self._src = mi.UInt32(octa.border_source_index(self.res).astype(np.uint32))
+            self._src = to_jit(mi.UInt32, octa.border_source_index(self.res))
         self._build_sampler()
 
     def set_scene(self, scene):

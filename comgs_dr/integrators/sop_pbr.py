@@ -17,9 +17,9 @@ import functools
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from comgs_dr.core import octahedral as octa
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.core.variant import AttachedRender, mitsuba_ad_base, variant_class
 from comgs_dr.emitters.octenvmap import emitter_class, is_octenvmap
 from comgs_dr.shading.deferred import DeferredPbr
@@ -131,7 +131,7 @@ class SopPbrBase(AttachedRender):
     def _load_probes(self, probes: ProbeSet):
         self.probe_set = probes
         # interior textures [P, R, R, 4] (RGB = L_in, A = O); the border is a gather
-        self.probe_data = mi.TensorXf(np.ascontiguousarray(probes.texture, np.float32))
+        self.probe_data = to_jit(mi.TensorXf, probes.texture)
         self._border = octa.BorderGather(probes.count, probes.res, 4)
         self._grid = ProbeGrid(probes.positions, probes.radius)
         self._sops = SopVisibility(None, self._grid, probes.res, self.probe_k)

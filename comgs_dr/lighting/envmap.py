@@ -33,6 +33,7 @@ from comgs_dr.core.equirect import (
     equirect_uv_to_dir_np,
     sample_equirect_np,
 )
+from comgs_dr.core.hostarray import to_jit
 
 LOG_RANGE = (-16.0, 16.0)    # clamp of log radiance: exp(±16) ≈ 1e-7 .. 9e6
 
@@ -144,7 +145,7 @@ class OctEnvmap:
                              f"{int((radiance < 0).sum())} negative values)")
         self.res = radiance.shape[0]
         log = np.clip(np.log(np.maximum(radiance, np.exp(LOG_RANGE[0]))), *LOG_RANGE)
-        self.theta = mi.Float(octa.add_border_np(log[None]).ravel().astype(np.float32))
+        self.theta = to_jit(mi.Float, octa.add_border_np(log[None]).ravel())
         self._border = octa.BorderRefresher(1, self.res, 3)
 
     # construction ------------------------------------------------------------------------
@@ -244,8 +245,8 @@ class EnvSampler:
         if not np.all(np.isfinite(w)) or w.sum() <= 0:
             raise ValueError("environment map has no finite positive energy to sample")
         self.pmf_np = w / w.sum()
-        self.dist = mi.DiscreteDistribution(mi.Float(self.pmf_np.astype(np.float32)))
-        self.pmf = mi.Float(self.pmf_np.astype(np.float32))
+        self.dist = mi.DiscreteDistribution(to_jit(mi.Float, self.pmf_np))
+        self.pmf = to_jit(mi.Float, self.pmf_np)
 
     def sample(self, u) -> EnvSample:
         """``u``: ``mi.Point2f`` in [0,1)² -> direction and solid-angle pdf."""

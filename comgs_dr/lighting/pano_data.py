@@ -30,6 +30,7 @@ from comgs_dr.core.equirect import (
     pixel_directions,
     solid_angle_image,
 )
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.lighting.envmap import read_envmap_file
 from comgs_dr.lighting.hdr import area_resize_equirect
 
@@ -103,8 +104,7 @@ def _splat_direction(img: np.ndarray, d: np.ndarray, power: np.ndarray) -> None:
 
 def _eval_emitter(emitter, dirs: np.ndarray) -> np.ndarray:
     si = dr.zeros(mi.SurfaceInteraction3f, len(dirs))
-    d = (-dirs).astype(np.float32)
-    si.wi = mi.Vector3f(d[:, 0], d[:, 1], d[:, 2])
+    si.wi = to_jit(mi.Vector3f, -dirs.T)
     return np.asarray(emitter.eval(si), np.float64).T
 
 
@@ -287,7 +287,7 @@ def room_panorama(rng: np.random.Generator, h: int = 64, w: int = 128, spp: int 
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)
     ray = mi.Ray3f(mi.Point3f(*[dr.full(mi.Float, float(c), n) for c in o]),
-                   mi.Vector3f(dirs[:, 0], dirs[:, 1], dirs[:, 2]))
+                   to_jit(mi.Vector3f, dirs.T))
     with dr.suspend_grad():
         L, _, _ = scene.integrator().sample(scene, sampler, ray)
         L = np.asarray(L, np.float64).T.reshape(h * w, s * s, 3).mean(1)

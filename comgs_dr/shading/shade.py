@@ -39,6 +39,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.shading import brdf
 
 
@@ -116,8 +117,8 @@ def sample_points(n_pts: int, s: int, seed: int, decorrelate: bool, blocks=None)
     base = np.concatenate([brdf.hammersley(b) for b in blocks]).astype(np.float32)   # [S, 2]
     lobe = np.concatenate([(np.arange(b) * 0.6180339887498949) % 1.0
                            for b in blocks]).astype(np.float32)           # [S] golden ratio
-    uu = dr.gather(mi.Point2f, mi.Point2f(base[:, 0], base[:, 1]), sid)
-    ul = dr.gather(mi.Float, mi.Float(lobe), sid)
+    uu = dr.gather(mi.Point2f, to_jit(mi.Point2f, base.T), sid)
+    ul = dr.gather(mi.Float, to_jit(mi.Float, lobe), sid)
     if decorrelate:
         off = _point_offsets(n_pts, seed, 3)
         ox, oy, ol = (dr.gather(mi.Float, o, pid) for o in off)
@@ -164,7 +165,7 @@ def shade(pts: ShadingPoints, env, visibility, cfg: ShadingConfig, seed: int = 0
         u_np = direction_set(s, seed).astype(np.float32)                   # [S, 2]
         idx = dr.arange(mi.UInt32, n_pts * s)
         pid, sid = idx // s, idx % s                                       # [N*S]
-        u = dr.gather(mi.Point2f, mi.Point2f(u_np[:, 0], u_np[:, 1]), sid)
+        u = dr.gather(mi.Point2f, to_jit(mi.Point2f, u_np.T), sid)
         u_lobe = None
     # Per-point values are read by S consecutive lanes: ReduceMode.Local pre-reduces equal
     # neighbouring indices in the backward scatter-add. (Expand would size its per-thread

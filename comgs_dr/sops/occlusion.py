@@ -27,6 +27,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core import octahedral as octa
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.core.similarity import Similarity
 from comgs_dr.sops.bake import bake
 from comgs_dr.sops.placement import farthest_points, query_radius
@@ -89,7 +90,7 @@ def transform_probes(probes: ProbeSet, sim: Similarity, supersample: int = 2) ->
     if probes.texture is None:
         raise ValueError("transform_probes: the probes have no textures")
     R, P, s = probes.res, probes.count, int(supersample)
-    atlas = mi.Float(probes.bordered().ravel())
+    atlas = to_jit(mi.Float, probes.bordered().ravel())
     # world directions: s×s stratified per texel (texel-major), object-space = Rᵀ ω
     j = (np.arange(s) + 0.5) / s
     ty, tx, sy, sx = np.meshgrid(np.arange(R), np.arange(R), j, j, indexing="ij")
@@ -100,7 +101,7 @@ def transform_probes(probes: ProbeSet, sim: Similarity, supersample: int = 2) ->
     n = len(uv_obj)
     tile = dr.arange(mi.UInt32, P * n) // n
     k = dr.arange(mi.UInt32, P * n) % n
-    uvv = dr.gather(mi.Point2f, mi.Point2f(uv_obj[:, 0], uv_obj[:, 1]), k)
+    uvv = dr.gather(mi.Point2f, to_jit(mi.Point2f, uv_obj.T), k)
     val = octa.lookup(atlas, octa.bilinear_taps(tile, uvv, R), 4)         # [P*n] Vector4f
     tex = np.asarray(val).T.reshape(P, R * R, s * s, 4).mean(2).reshape(P, R, R, 4)
     sc = float(sim.scale)

@@ -20,6 +20,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core import octahedral as octa
+from comgs_dr.core.hostarray import to_jit
 
 FORMAT_VERSION = 1
 CHANNELS = 4
@@ -68,7 +69,7 @@ class ProbeSet:
 
     def atlas(self):
         """Flat bordered ``mi.Float`` atlas (the optimised parameter in step 2)."""
-        return mi.Float(self.bordered().ravel())
+        return to_jit(mi.Float, self.bordered().ravel())
 
     def set_from_atlas(self, atlas) -> None:
         """Copy an optimised bordered atlas back into ``texture``."""

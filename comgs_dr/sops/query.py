@@ -42,6 +42,8 @@ import mitsuba as mi
 import numpy as np
 from scipy.spatial import cKDTree
 
+from comgs_dr.core.hostarray import to_jit
+
 __all__ = ["ProbeGrid", "KnnResult", "query", "interpolate", "brute_force_query",
            "EPS_REL", "BACKFACE_FLOOR"]
 
@@ -126,7 +128,7 @@ class ProbeGrid:
 
         P = len(pos)
         with dr.suspend_grad():
-            comps = [mi.Float(pos[:, a]) for a in range(3)]
+            comps = [to_jit(mi.Float, pos[:, a]) for a in range(3)]
             if self.hashed:
                 cells = [_cell(comps[a], self.origin[a], self.inv_cell,
                                -_HASH_CLAMP, _HASH_CLAMP) for a in range(3)]
@@ -147,10 +149,9 @@ class ProbeGrid:
         counts = np.bincount(key, minlength=self.table_size)
         start = np.zeros(self.table_size + 1, np.uint32)
         np.cumsum(counts, out=start[1:])
-        self.sorted_index = mi.UInt32(order.astype(np.uint32))
-        sp = pos[order]
-        self.sorted_pos = mi.Point3f(mi.Float(sp[:, 0]), mi.Float(sp[:, 1]), mi.Float(sp[:, 2]))
-        self.cell_start = mi.UInt32(start)
+        self.sorted_index = to_jit(mi.UInt32, order)
+        self.sorted_pos = to_jit(mi.Point3f, pos[order].T)
+        self.cell_start = to_jit(mi.UInt32, start)
         dr.eval(self.sorted_index, self.sorted_pos, self.cell_start)
 
     @property
@@ -162,7 +163,7 @@ class ProbeGrid:
     def cell_count(self):
         """Probes per cell/bucket (``mi.UInt32`` [C])."""
         c = np.asarray(self.cell_start, np.int64)
-        return mi.UInt32((c[1:] - c[:-1]).astype(np.uint32))
+        return to_jit(mi.UInt32, c[1:] - c[:-1])
 
     def kdtree(self):
         """scipy cKDTree over the probes (built on first use; fallback queries)."""
@@ -257,7 +258,7 @@ def query(grid: ProbeGrid, points, normals, k: int = 8) -> KnnResult:
             dr.eval(xp)
             pts = np.stack([np.asarray(xp.x), np.asarray(xp.y), np.asarray(xp.z)], 1)
             _, nn = grid.kdtree().query(pts.astype(np.float64), k=1)
-            dr.scatter(index, mi.UInt32(np.asarray(nn, np.uint32)), ids * k)
+            dr.scatter(index, to_jit(mi.UInt32, nn), ids * k)
             dr.scatter(weight, mi.Float(1.0), ids * k)
             dr.eval(index, weight)
     return KnnResult(index, weight, count, fallback, k, n_fb, grid.count)

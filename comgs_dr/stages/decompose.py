@@ -31,6 +31,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from comgs_dr.core.colorspace import display_composite
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.emitters.octenvmap import OctEnvmapBase
 from comgs_dr.eval.metrics import psnr
 from comgs_dr.lighting.envmap import LOG_RANGE, OctEnvmap
@@ -133,9 +134,9 @@ class MaterialTrainer:
         resumed = self._load_checkpoint()
         n = params.count
         if resumed is None:
-            params.albedo = mi.Color3f(np.full((3, n), cfg.init_albedo, np.float32))
-            params.roughness = mi.Float(np.full(n, cfg.init_roughness, np.float32))
-            params.metallic = mi.Float(np.full(n, cfg.init_metallic, np.float32))
+            params.albedo = to_jit(mi.Color3f, np.full((3, n), cfg.init_albedo, np.float32))
+            params.roughness = to_jit(mi.Float, np.full(n, cfg.init_roughness, np.float32))
+            params.metallic = to_jit(mi.Float, np.full(n, cfg.init_metallic, np.float32))
         self.views, self.test = self.data.train, self.data.test
         clip = self.data.clip_planes()            # relative to the scene, as step 1
         sensors = [v.camera.sensor_dict(**clip) for v in self.views + self.test]
@@ -163,7 +164,7 @@ class MaterialTrainer:
         self.opt = mi.ad.Adam(lr=cfg.lr_material)
         for k in MAT_KEYS:
             self.opt[k] = self.mp[k]
-        self.opt[ENV_KEY] = mi.Float(np.log(np.full(cfg.env_res ** 2 * 3, cfg.env_init, np.float32)))
+        self.opt[ENV_KEY] = to_jit(mi.Float, np.log(np.full(cfg.env_res ** 2 * 3, cfg.env_init, np.float32)))
         lrs = {ENV_KEY: cfg.lr_env}
         self.has_sops = cfg.visibility == "sops"
         if self.has_sops:
@@ -179,7 +180,7 @@ class MaterialTrainer:
         if resumed is not None:
             self._restore(resumed)
         self._apply()
-        self.targets = [mi.TensorXf(v.image.astype(np.float32)) for v in self.views]
+        self.targets = [to_jit(mi.TensorXf, v.image) for v in self.views]
         t0 = time.perf_counter()
         for j in tqdm(range(len(self.views) + len(self.test)), desc="G-buffers", unit="view",
                       disable=not progress):
@@ -348,8 +349,8 @@ class MaterialTrainer:
     @staticmethod
     def _from_numpy(name, a, like):
         if isinstance(like, mi.TensorXf):
-            return mi.TensorXf(np.ascontiguousarray(np.reshape(a, like.shape), np.float32))
-        return type(like)(*a) if np.ndim(a) == 2 else type(like)(a)
+            return to_jit(mi.TensorXf, np.reshape(a, like.shape))
+        return to_jit(type(like), a)
 
     def _restore(self, resumed):
         arrays, moments, state = resumed

@@ -33,6 +33,7 @@ from tqdm.auto import tqdm
 
 from comgs_dr.core.cameras import camera_rays
 from comgs_dr.core.colorspace import srgb_encode
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.core.tsdf import TSDFVolume
 from comgs_dr.surfels import load_ply
 from comgs_dr.surfels.io import quat_to_matrix
@@ -116,10 +117,10 @@ def _consistent(depth, normal, dirs, origins, weight, max_deg: float) -> np.ndar
     with the rendered normal within ``max_deg``. A pixel whose depth mixes a surface with
     what shows through a hole in it fails; measured on a sphere of mesh-sampled surfels,
     3-6 % of covered pixels had depth errors > 10 % of the radius."""
-    nd = np.asarray(depth_to_normal(mi.TensorXf(depth.astype(np.float32)),
-                                    mi.TensorXf(dirs.astype(np.float32)),
-                                    mi.TensorXf(origins.astype(np.float32)),
-                                    weight=mi.TensorXf(weight.astype(np.float32))))
+    nd = np.asarray(depth_to_normal(to_jit(mi.TensorXf, depth),
+                                    to_jit(mi.TensorXf, dirs),
+                                    to_jit(mi.TensorXf, origins),
+                                    weight=to_jit(mi.TensorXf, weight)))
     n = normal / np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-8)
     return (np.abs((n * nd).sum(-1)) >= math.cos(math.radians(max_deg))) & (weight > 0.5)
 

@@ -21,6 +21,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core.cameras import camera_rays
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.eval.metrics import psnr
 from comgs_dr.surfels import kernel as Kn
 from comgs_dr.surfels import save_ply
@@ -228,7 +229,7 @@ class Trainer:
         # update() walks every kept key: leave the sensors out
         self.mp.keep(r"surfels\..*|environment\.data")
         if resumed is not None and self.env and "env" in arrays:   # (its Adam restarts)
-            self.mp[bgenv.KEY] = mi.TensorXf(arrays["env"])
+            self.mp[bgenv.KEY] = to_jit(mi.TensorXf, arrays["env"])
         self.shape = self.scene.shapes()[0]
         self.opt = mi.ad.Adam(lr=1.0)
         self._register(params)
@@ -245,8 +246,8 @@ class Trainer:
                 raise ValueError(f"checkpoint {self.run_dir / ck.CKPT_NAME}: its Adam state does "
                                  f"not fit its surfels ({e}); delete it to start over") from e
         self.density = DensityController(DensityConfig(**cfg.densify), params.count, self.extent)
-        self.targets = [mi.TensorXf(v.image.astype(np.float32)) for v in self.views]
-        self.masks = [None if v.mask is None else mi.TensorXf(v.mask[..., None].astype(np.float32))
+        self.targets = [to_jit(mi.TensorXf, v.image) for v in self.views]
+        self.masks = [None if v.mask is None else to_jit(mi.TensorXf, v.mask[..., None])
                       for v in self.views]
         self._rays = {}
         self.loss_fn = cfg.loss()
@@ -273,7 +274,7 @@ class Trainer:
         sh_lr = np.full((n, k, 3), c.lr_sh_rest, np.float32)
         sh_lr[:, 0] = c.lr_sh_dc
         self.opt.set_learning_rate({
-            "surfels.means": self._lr_means(), "surfels.sh": mi.Float(sh_lr.ravel()),
+            "surfels.means": self._lr_means(), "surfels.sh": to_jit(mi.Float, sh_lr.ravel()),
             "surfels.opacity_logit": c.lr_opacity, "surfels.log_scales": c.lr_scales,
             "surfels.quats": c.lr_quats})
 
@@ -450,7 +451,7 @@ class Trainer:
         """Install a snapshot into the scene and the optimiser (moments restart at zero)."""
         state = dict(state)
         if self.env:
-            self.mp[bgenv.KEY] = mi.TensorXf(state.pop("env"))
+            self.mp[bgenv.KEY] = to_jit(mi.TensorXf, state.pop("env"))
         self._install(SurfelParams.from_numpy(**state))
         for key in PARAM_KEYS.values():
             self.opt[key] = self.mp[key]

@@ -14,6 +14,7 @@ from tqdm import tqdm
 from comgs_dr.core import exr
 from comgs_dr.core.cameras import camera_rays
 from comgs_dr.core.colorspace import srgb_decode
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.data.images import write_png8
 from comgs_dr.data.nerf import split_frames
 from comgs_dr.emitters.octenvmap import emitter_class
@@ -58,7 +59,7 @@ def _sky_pixels(scene, i: int) -> np.ndarray:
     sensor = scene.sensors()[i]
     dirs, _ = camera_rays(sensor)
     d = np.asarray(dirs, np.float32)
-    e = scene.environment().eval_world(mi.Vector3f(d.reshape(-1, 3).T.copy()))
+    e = scene.environment().eval_world(to_jit(mi.Vector3f, d.reshape(-1, 3).T))
     return np.asarray(e).T.reshape(d.shape).astype(np.float64)
 
 

@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from comgs_dr.core.cameras import camera_rays
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.core.octahedral import expand_mode
 from comgs_dr.surfels import composite
 from comgs_dr.surfels.composite import trace_composite
@@ -70,7 +70,7 @@ def group_gbuffer(scene, sensor, group_of_shape: list[int], K: int = 32,
         hits, _, _, _ = trace_composite(scene, shapes, ray, K, eps, ("weight",))
         R = h * w
         rid = dr.arange(mi.UInt32, R)
-        group_lut = mi.UInt32(np.asarray(group_of_shape, np.uint32))
+        group_lut = to_jit(mi.UInt32, group_of_shape)
         wts = dr.zeros(mi.Float, R * K)
         names = ("weight", "depth", "normal") + (("color",) if colour_groups else ())
 

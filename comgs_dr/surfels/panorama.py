@@ -26,6 +26,7 @@ import numpy as np
 
 from comgs_dr.core import colorspace
 from comgs_dr.core.equirect import coverage, equirect_directions, pixel_directions
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.surfels import composite
 from comgs_dr.surfels.composite import trace_composite
 from comgs_dr.surfels.shape import SurfelShapeBase, ensure_proxies
@@ -126,7 +127,7 @@ def _excluding_scene(shapes, position: np.ndarray, radius: float):
 def _trace_chunk(scene, shapes, eps, origin, dirs, max_hits, colour_space):
     """Premultiplied per-ray buffers as numpy: W [R], C [R,3], L [R,3], D [R], N [R,3]."""
     o = mi.Point3f(*[dr.full(mi.Float, float(c), len(dirs)) for c in origin])
-    d = mi.Vector3f(dirs[:, 0], dirs[:, 1], dirs[:, 2])
+    d = to_jit(mi.Vector3f, dirs.T)
     with dr.suspend_grad():
         _, out, _, _ = trace_composite(scene, shapes, mi.Ray3f(o, d), max_hits, eps,
                                        ("color", "weight", "depth", "normal"))

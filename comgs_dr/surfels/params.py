@@ -29,6 +29,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from comgs_dr.core.hostarray import to_jit
+
 NUMPY_SHAPES = {  # field -> trailing shape (after N)
     "means": (3,), "quats": (4,), "log_scales": (2,), "opacity_logit": (),
     "sh": None, "albedo": (3,), "roughness": (), "metallic": (),
@@ -104,10 +106,11 @@ class SurfelParams:
         roughness = np.full(n, 0.5, np.float32) if roughness is None else _f32(roughness, "roughness", (), n)
         metallic = np.zeros(n, np.float32) if metallic is None else _f32(metallic, "metallic", (), n)
         return SurfelParams(
-            means=mi.Point3f(means.T.copy()), quats=mi.Vector4f(quats.T.copy()),
-            log_scales=mi.Vector2f(log_scales.T.copy()), opacity_logit=mi.Float(opacity_logit),
-            sh=mi.Float(np.ascontiguousarray(sh).ravel()), albedo=mi.Color3f(albedo.T.copy()),
-            roughness=mi.Float(roughness), metallic=mi.Float(metallic))
+            means=to_jit(mi.Point3f, means.T), quats=to_jit(mi.Vector4f, quats.T),
+            log_scales=to_jit(mi.Vector2f, log_scales.T),
+            opacity_logit=to_jit(mi.Float, opacity_logit), sh=to_jit(mi.Float, sh.ravel()),
+            albedo=to_jit(mi.Color3f, albedo.T), roughness=to_jit(mi.Float, roughness),
+            metallic=to_jit(mi.Float, metallic))
 
     def to_numpy(self) -> dict:
         """Dict of float32 arrays ([N,3], [N,4], [N,2], [N], [N,K,3], [N,3], [N], [N])."""
@@ -169,8 +172,8 @@ def field_from_numpy(name: str, a: np.ndarray, like):
     """Inverse of :func:`field_to_numpy` with the Dr.Jit type of ``like``."""
     a = np.ascontiguousarray(a, dtype=np.float32)
     if name == "sh" or a.ndim == 1:
-        return type(like)(a.ravel())
-    return type(like)(a.T.copy())
+        return to_jit(type(like), a.ravel())
+    return to_jit(type(like), a.T)
 
 
 def object_size(params: SurfelParams) -> float:

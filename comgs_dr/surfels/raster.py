@@ -36,6 +36,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.surfels import kernel as Kn
 from comgs_dr.surfels.composite import INVALID, HitBuffer
 from comgs_dr.surfels.shape import _finite_rest, proxy_shift
@@ -95,7 +96,7 @@ def pinhole_view(sensor) -> PinholeView:
         off = np.array(film.crop_offset(), np.float64)              # sample2 spans the crop
         crop = np.array(film.crop_size(), np.float64)
         smp = (pos - off) / crop
-        ray, _ = sensor.sample_ray(0.0, 0.0, mi.Point2f(smp[:, 0], smp[:, 1]), mi.Point2f(0.5))
+        ray, _ = sensor.sample_ray(0.0, 0.0, to_jit(mi.Point2f, smp.T), mi.Point2f(0.5))
     d = np.array(ray.d, np.float64).reshape(3, -1).T                      # [25, 3]
     c = d @ M.T
     if np.any(c[:, 2] <= 0):
@@ -159,9 +160,10 @@ def surfel_geometry(shapes) -> SurfelGeometry:
     cat = {k: np.concatenate(v) for k, v in parts.items()}
     vec = {"p": mi.Point3f, "proxy": mi.Point3f, "t_u": mi.Vector3f, "t_v": mi.Vector3f,
            "n": mi.Vector3f, "s": mi.Vector2f}
-    return SurfelGeometry(**{k: T(cat[k].T) for k, T in vec.items()}, op=mi.Float(cat["op"]),
-                          keep=cat["keep"], slot=mi.UInt32(cat["slot"]),
-                          local=mi.UInt32(cat["local"]), n_shapes=len(shapes))
+    return SurfelGeometry(**{k: to_jit(T, cat[k].T) for k, T in vec.items()},
+                          op=to_jit(mi.Float, cat["op"]), keep=cat["keep"],
+                          slot=to_jit(mi.UInt32, cat["slot"]),
+                          local=to_jit(mi.UInt32, cat["local"]), n_shapes=len(shapes))
 
 
 @dataclasses.dataclass
@@ -182,7 +184,7 @@ def _project(geo: SurfelGeometry, view: PinholeView):
     with dr.suspend_grad():
         M = mi.ScalarMatrix3f(view.M.astype(np.float32))
         C = mi.ScalarPoint3f(view.C.astype(np.float32))
-        A = view.A.astype(np.float32)
+        A = view.A.astype(np.float32).tolist()      # floats: np.float32 * mi.Float is a numpy array
         zc = float(view.near * _NEAR_FRACTION)
         eu = geo.t_u * (geo.s.x * Kn.QUAD_SIGMA)
         ev = geo.t_v * (geo.s.y * Kn.QUAD_SIGMA)
@@ -199,8 +201,8 @@ def _project(geo: SurfelGeometry, view: PinholeView):
             for q, valid in ((pa, za >= 0), (pa + (pb - pa) * w, cross)):
                 z = dr.select(valid, dr.maximum(q.z, zc), 1.0)
                 x, y = q.x / z, q.y / z
-                fx = A[0, 0] * x + A[0, 1] * y + A[0, 2]
-                fy = A[1, 0] * x + A[1, 1] * y + A[1, 2]
+                fx = A[0][0] * x + A[0][1] * y + A[0][2]
+                fy = A[1][0] * x + A[1][1] * y + A[1][2]
                 x0 = dr.select(valid, dr.minimum(x0, fx), x0)
                 x1 = dr.select(valid, dr.maximum(x1, fx), x1)
                 y0 = dr.select(valid, dr.minimum(y0, fy), y0)
@@ -258,11 +260,11 @@ def bin_surfels(geo: SurfelGeometry, view: PinholeView) -> TileLists:
     ebox = (ebox + np.array([-_MARGIN_PX, _MARGIN_PX, -_MARGIN_PX, _MARGIN_PX])).astype(np.float32)
     per_tile = np.bincount(tiles, minlength=n_tiles)
     end = np.cumsum(per_tile)
-    return TileLists(ids=mi.UInt32(ids) if total else dr.zeros(mi.UInt32, 1),
-                     keys=mi.Float(keys) if total else dr.zeros(mi.Float, 1),
-                     box=mi.Vector4f(ebox.T) if total else dr.zeros(mi.Vector4f, 1),
-                     start=mi.UInt32((end - per_tile).astype(np.uint32)),
-                     end=mi.UInt32(end.astype(np.uint32)), entries=total)
+    return TileLists(ids=to_jit(mi.UInt32, ids) if total else dr.zeros(mi.UInt32, 1),
+                     keys=to_jit(mi.Float, keys) if total else dr.zeros(mi.Float, 1),
+                     box=to_jit(mi.Vector4f, ebox.T) if total else dr.zeros(mi.Vector4f, 1),
+                     start=to_jit(mi.UInt32, end - per_tile),
+                     end=to_jit(mi.UInt32, end), entries=total)
 
 
 def raster_hits(geo: SurfelGeometry, lists: TileLists, view: PinholeView, ray, pix, K: int,

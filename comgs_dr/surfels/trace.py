@@ -13,6 +13,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core import colorspace
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.surfels import composite
 from comgs_dr.surfels.composite import trace_composite
 
@@ -59,8 +60,7 @@ def trace_visibility_np(scene, origins, directions, chunk: int = 1 << 19, progre
     for s in range(0, n, chunk):
         e = min(n, s + chunk)
         o, d = origins[s:e], directions[s:e]
-        O, L = trace_visibility(scene, mi.Point3f(o[:, 0], o[:, 1], o[:, 2]),
-                                mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]), **kw)
+        O, L = trace_visibility(scene, to_jit(mi.Point3f, o.T), to_jit(mi.Vector3f, d.T), **kw)
         occ[s:e] = np.asarray(O)
         if rad is not None:
             rad[s:e] = np.asarray(L).T

@@ -13,6 +13,7 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.core.similarity import Similarity
 from comgs_dr.surfels import kernel as K
 from comgs_dr.surfels.params import SurfelParams
@@ -50,7 +51,7 @@ def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _sh_basis_np(d: np.ndarray, degree: int) -> np.ndarray:
     """[N, (deg+1)²] real SH basis of the 3DGS convention (``kernel.sh_basis``)."""
-    v = mi.Vector3f(*(np.ascontiguousarray(d[:, i], np.float32) for i in range(3)))
+    v = to_jit(mi.Vector3f, d.T)
     return np.stack([np.asarray(b, np.float64) for b in K.sh_basis(v, degree)], 1)
 
 

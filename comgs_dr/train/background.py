@@ -36,6 +36,7 @@ import numpy as np
 from comgs_dr.core import exr
 from comgs_dr.core import octahedral as octa
 from comgs_dr.core.cameras import camera_rays
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.emitters.octenvmap import emitter_class
 from comgs_dr.lighting.envmap import read_envmap_file, write_exr
 
@@ -69,7 +70,7 @@ def total_variation(data) -> "mi.Float":
     pushed to extremes by the photometric loss alone (a sky texel at blue = 1 read as a
     clipped light at the placement); Adam normalises every texel's step, so for them this
     term decides and smooths them towards their neighbours."""
-    t = data if isinstance(data, mi.TensorXf) else mi.TensorXf(data)
+    t = data if isinstance(data, mi.TensorXf) else to_jit(mi.TensorXf, data)
     dx = dr.abs(t[:, 1:, :] - t[:, :-1, :])
     dy = dr.abs(t[1:, :, :] - t[:-1, :, :])
     return (dr.mean(dx.array) + dr.mean(dy.array)) * 0.5

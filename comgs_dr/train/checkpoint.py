@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from comgs_dr.core.hostarray import to_jit
+
 CKPT_NAME = "checkpoint.npz"
 
 
@@ -120,5 +122,5 @@ def restore_moments(opt, keys: dict, moments: dict, from_numpy) -> None:
             continue
         value, promoted, lr, (t0, m0, _, vmax) = opt.state[key]
         like = opt[key] if m0 is None else m0       # Adam keeps a tensor's moments flat
-        opt.state[key] = (value, promoted, lr, (type(t0)(t), from_numpy(name, m, like),
+        opt.state[key] = (value, promoted, lr, (to_jit(type(t0), t), from_numpy(name, m, like),
                                                  from_numpy(name, v, like), vmax))

@@ -26,6 +26,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from comgs_dr.core.hostarray import to_jit
+
 __all__ = ["l1", "gaussian_window", "blur", "ssim_map", "ssim", "rgb_loss",
            "depth_to_normal", "d2n_loss", "mask_loss", "Step1Loss"]
 
@@ -40,7 +42,7 @@ def _tensor(x, name: str) -> mi.TensorXf:
     a = np.asarray(x, dtype=np.float32)
     if a.ndim == 0:
         raise ValueError(f"{name}: expected an image [H, W, C], got a scalar")
-    return mi.TensorXf(np.ascontiguousarray(a))
+    return to_jit(mi.TensorXf, a)
 
 
 def _image(x, name: str, channels: int | None = None):

@@ -18,6 +18,7 @@ import trimesh
 
 from comgs_dr.core import octahedral as octa
 from comgs_dr.core.cameras import perspective
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.surfels import SurfelParams
 from comgs_dr.surfels.kernel import SH_C0
 
@@ -104,7 +105,7 @@ def env_emitter(radiance):
     from comgs_dr.emitters.octenvmap import OctEnvmapBase
     em = OctEnvmapBase.from_radiance(radiance)
     n = 4096
-    u = mi.Point2f(np.random.default_rng(0).random((2, n)).astype(np.float32))
+    u = to_jit(mi.Point2f, np.random.default_rng(0).random((2, n)))
     ds, w = em.sample_direction(dr.zeros(mi.Interaction3f), u)
     pdf = em.pdf_direction(dr.zeros(mi.Interaction3f), ds)
     ev = em.eval_direction(dr.zeros(mi.Interaction3f), ds)
@@ -118,7 +119,7 @@ def learnable_env(radiance):
     """lighting.envmap.OctEnvmap: stored radiance, lookups, sampling, a refresh."""
     from comgs_dr.lighting.envmap import OctEnvmap
     env = OctEnvmap(radiance)
-    u = mi.Point2f(np.random.default_rng(1).random((2, 1024)).astype(np.float32))
+    u = to_jit(mi.Point2f, np.random.default_rng(1).random((2, 1024)))
     d, pdf = env.sample_world(u)
     env.refresh()
     return {"radiance": env.radiance_np(), "eval": np.asarray(env.eval(d)),
@@ -181,15 +182,15 @@ def brdf_extremes(roughness, metallic):
     D = np.array([np.asarray(v, np.float64) / np.linalg.norm(v) for v in dirs])
     wo, wi = np.repeat(D, len(D), 0), np.tile(D, (len(D), 1))
     n = len(wo)
-    V = lambda a: mi.Vector3f(np.ascontiguousarray(a.T, np.float32))      # noqa: E731
+    V = lambda a: to_jit(mi.Vector3f, a.T)      # noqa: E731
     nz = mi.Vector3f(0, 0, 1)
     alb = mi.Color3f(0.9, 0.5, 0.1)
-    r, m = mi.Float(np.full(n, roughness, np.float32)), mi.Float(np.full(n, metallic, np.float32))
+    r, m = to_jit(mi.Float, np.full(n, roughness)), to_jit(mi.Float, np.full(n, metallic))
     f = brdf.eval_brdf(alb, r, m, nz, V(wo), V(wi))
     alpha = brdf.ggx_alpha(mi.Float(roughness))
     corners = np.array([[0, 0], [0, 1], [1, 0], [1, 1], [0.5, 0.5], [1e-9, 1 - 1e-9]])
     u = np.concatenate([corners, rng.random((n - len(corners), 2))])
-    us = mi.Point2f(np.ascontiguousarray(u.T, np.float32))
+    us = to_jit(mi.Point2f, u.T)
     wi_s, pdf_s = brdf.sample_ggx_vndf(us, V(wo), alpha)
     wc, pc = brdf.sample_cosine_hemisphere(us)
     return {"f": np.asarray(f), "wi": np.asarray(wi_s), "pdf": np.asarray(pdf_s),
@@ -321,10 +322,9 @@ def probe_query(kind):
     grid = q.ProbeGrid(probes, radius)
     nrm = rng.normal(size=(len(pts), 3))
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    res = q.query(grid, mi.Point3f(np.ascontiguousarray(pts.T, np.float32)),
-                  mi.Vector3f(np.ascontiguousarray(nrm.T, np.float32)), k=8)
+    res = q.query(grid, to_jit(mi.Point3f, pts.T), to_jit(mi.Vector3f, nrm.T), k=8)
     idx, w, count, fb = res.numpy()
-    vals = q.interpolate(res, mi.Float(np.arange(len(probes), dtype=np.float32)))
+    vals = q.interpolate(res, to_jit(mi.Float, np.arange(len(probes))))
     assert np.allclose(w.sum(1), 1.0, atol=1e-4), "weights do not sum to 1"
     assert (idx < len(probes)).all()
     if kind == "no_neighbour":
