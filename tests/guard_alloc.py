@@ -6,8 +6,10 @@ mapped array: up to 15 elements past its end (``tests/test_hostarray.py``). When
 ends just before an unmapped page the process segfaults, at random, depending on the heap.
 
 With ``COMGS_GUARD_ALLOC=1`` the test session allocates every numpy buffer of at least
-``MIN_BYTES`` so that it ends less than 16 bytes before a ``PROT_NONE`` page (Electric-Fence
-style), which turns such a read into a deterministic crash at the offending kernel.
+``MIN_BYTES`` so that it ends exactly at a ``PROT_NONE`` page (Electric-Fence style), which
+turns such a read into a deterministic crash at the offending kernel. Only the main
+thread's numpy allocations are guarded (numpy's handler is a context variable), and
+notebooks run in their own kernels, unguarded.
 
 The allocator is a few lines of C compiled with the system's ``cc`` on first use (cached in
 the temp folder) and installed with the ``numpy-allocator`` package: Python callbacks would
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import os
 import shutil
 import subprocess
 import tempfile
@@ -29,8 +32,8 @@ _SOURCE = r"""
 #include <stdlib.h>
 #include <string.h>
 #include <sys/mman.h>
+#include <unistd.h>
 #define MIN_BYTES %(min_bytes)d
-#define PAGE 4096
 #define MAGIC_GUARD 0x6775617264706167ULL
 #define MAGIC_SMALL 0x736d616c6c626c6bULL
 typedef struct { uint64_t magic, base, length, size; } hdr_t;   /* 32 bytes before the data */
@@ -43,12 +46,15 @@ void *guard_malloc(size_t size) {
         h->magic = MAGIC_SMALL; h->size = size;
         return p + sizeof(hdr_t);
     }
-    size_t pages = (size + 64 + PAGE - 1) / PAGE, length = (pages + 1) * PAGE;
+    size_t page = (size_t) sysconf(_SC_PAGESIZE);
+    size_t pages = (size + 64 + page - 1) / page, length = (pages + 1) * page;
     char *base = mmap(NULL, length, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
     if (base == MAP_FAILED) return NULL;
-    char *guard = base + pages * PAGE;
-    mprotect(guard, PAGE, PROT_NONE);
-    char *ptr = (char *) ((uintptr_t) (guard - size) & ~(uintptr_t) 15);
+    char *guard = base + pages * page;
+    if (mprotect(guard, page, PROT_NONE) != 0) abort();
+    /* the data end exactly at the guard page; the start is then aligned to size's lowest set
+       bit, at least the element size of the array numpy asked for */
+    char *ptr = guard - size;
     hdr_t *h = (hdr_t *) (ptr - sizeof(hdr_t));
     h->magic = MAGIC_GUARD; h->base = (uint64_t) base; h->length = length; h->size = size;
     return ptr;
@@ -81,19 +87,26 @@ void *guard_realloc(void *ptr, size_t size) {
 """
 
 
+def compiler() -> str | None:
+    return shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+
+
 def _library() -> ctypes.CDLL:
     src = _SOURCE % {"min_bytes": MIN_BYTES}
     tag = hashlib.sha1(src.encode()).hexdigest()[:12]
-    lib = Path(tempfile.gettempdir()) / f"comgs_guard_alloc_{tag}.so"
+    folder = Path(tempfile.gettempdir()) / f"comgs_guard_alloc_{os.getuid()}"
+    folder.mkdir(mode=0o700, exist_ok=True)
+    lib = folder / f"guard_{tag}.so"
     if not lib.exists():
-        cc = shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+        cc = compiler()
         if cc is None:
             raise RuntimeError("guard_alloc: no C compiler (cc) to build the allocator")
-        c_file = lib.with_suffix(".c")
-        c_file.write_text(src)
-        tmp = lib.with_suffix(f".{tag}.tmp.so")
-        subprocess.run([cc, "-O2", "-shared", "-fPIC", "-o", str(tmp), str(c_file)], check=True)
-        tmp.replace(lib)
+        with tempfile.TemporaryDirectory(dir=folder) as tmp:     # private names: no races
+            c_file, so_file = Path(tmp) / "guard.c", Path(tmp) / "guard.so"
+            c_file.write_text(src)
+            subprocess.run([cc, "-O2", "-shared", "-fPIC", "-o", str(so_file), str(c_file)],
+                           check=True)
+            os.replace(so_file, lib)
     return ctypes.CDLL(str(lib))
 
 

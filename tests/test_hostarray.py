@@ -21,12 +21,12 @@ _EDGE = textwrap.dedent("""
     libc.mmap.restype = ctypes.c_void_p
     libc.mmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int,
                           ctypes.c_int, ctypes.c_long]
-    libc.munmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
     n, how = int(sys.argv[1]), sys.argv[2]
     P = mmap.PAGESIZE
     pages = 4 * n // P + 2
+    libc.mprotect.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
     base = libc.mmap(None, pages * P, 3, mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS, -1, 0)
-    assert libc.munmap(base + (pages - 1) * P, P) == 0
+    assert libc.mprotect(base + (pages - 1) * P, P, 0) == 0      # PROT_NONE, stays reserved
     start = base + (pages - 1) * P - 4 * n
     a = np.ctypeslib.as_array(ctypes.cast(start, ctypes.POINTER(ctypes.c_float)), shape=(n,))
     a[:] = np.linspace(0, 1, n, dtype=np.float32)
@@ -82,13 +82,31 @@ def test_padded_keeps_a_zeroed_packet_after_the_data():
     assert tail.size == PAD_ELEMENTS and not tail.any()
 
 
-def test_to_jit_keeps_its_buffer_alive_and_accepts_lists_and_jit_values():
+def test_the_padded_buffer_lives_as_long_as_the_jit_array():
     import gc
-    x = to_jit(mi.Float, [1.0, 2.0, 3.0])
+    import weakref
+    view = padded(np.arange(5000, dtype=np.float32))
+    alive = weakref.ref(view.base)
+    x = mi.Float(view)                                # what to_jit does with the view
+    del view
     gc.collect()
-    assert np.array(x * 2.0).tolist() == [2.0, 4.0, 6.0]
+    assert alive() is not None                        # Dr.Jit holds the buffer
+    assert float(dr.sum(x * 2.0)[0]) == 2.0 * sum(range(5000))
+    del x
+    gc.collect()
+    assert alive() is None                            # and releases it
+
+
+def test_to_jit_accepts_lists_transposes_and_jit_values():
+    assert np.array(to_jit(mi.Float, [1.0, 2.0, 3.0])).tolist() == [1.0, 2.0, 3.0]
+    a = np.arange(12, dtype=np.float64).reshape(4, 3)
+    np.testing.assert_array_equal(np.array(to_jit(mi.Point3f, a.T)), a.T.astype(np.float32))
+    assert dr.width(to_jit(mi.Float, np.zeros(0))) == 0
     y = dr.arange(mi.Float, 4)
-    assert to_jit(mi.Float, y) is not None and np.array(to_jit(mi.Float, y)).tolist() == [0, 1, 2, 3]
+    assert np.array(to_jit(mi.Float, y)).tolist() == [0, 1, 2, 3]
+    dr.enable_grad(y)
+    p = to_jit(mi.Point3f, [y, y, y])                 # Dr.Jit components keep their gradients
+    assert dr.grad_enabled(p)
 
 
 def test_to_jit_accepts_cpu_torch_tensors():

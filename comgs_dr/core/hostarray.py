@@ -5,13 +5,14 @@ Dr.Jit maps a C-contiguous CPU ndarray zero-copy (``mi.Float(a)``, ``mi.TensorXf
 whole: up to 15 elements past the end of the array (measured on Dr.Jit 1.5.0 with
 AVX-512: an array of 100 003 floats ending 48 bytes before an unmapped page segfaults, 56
 bytes does not; ``tests/test_hostarray.py``). Whether that page is mapped depends on the
-heap's history, so the crash is random: large numpy buffers are served by ``mmap`` and end
-within 60 bytes of their mapping's end about 1.5 % of the time.
+heap's history, so the crash is random: large numpy buffers are served by ``mmap``, and
+their end falls within 60 bytes of the mapping's end for ≤ 60 of the 4096 possible offsets
+(≈ 1.5 %, an estimate; the next page must also be unmapped).
 
 :func:`to_jit` copies the data into a buffer with one spare packet after it and hands Dr.Jit
 a view of it (the view keeps the buffer alive). Every numpy -> Dr.Jit conversion in the
-package goes through it; ``tests/guard_alloc.py`` finds conversions that do not.
-Hand-written because neither Dr.Jit nor Mitsuba offers a padded or copying constructor.
+package goes through it; ``tests/guard_alloc.py`` finds, on the paths the tests run,
+conversions that do not. Hand-written because neither Dr.Jit nor Mitsuba offers a padded or copying constructor.
 """
 from __future__ import annotations
 
@@ -54,6 +55,8 @@ def to_jit(cls, a):
     ``mi.Point3f``), tensors any shape."""
     if isinstance(a, dr.ArrayBase):
         return cls(a)
+    if isinstance(a, (list, tuple)) and any(isinstance(c, dr.ArrayBase) for c in a):
+        return cls(*a)                      # Dr.Jit components: no host data, AD kept
     if hasattr(a, "detach") and hasattr(a, "cpu"):          # torch tensor
         a = a.detach().cpu().numpy()
     return cls(padded(a, host_dtype(cls)))

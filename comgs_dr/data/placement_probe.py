@@ -70,7 +70,8 @@ def render_probe(scene: "mi.Scene", position, height: int = 128, spp_side: int =
         p1 = min(n, p0 + step)
         m = (p1 - p0) * k * k
         d = pixel_directions(w, h, p0, p1, k, rng, equal_area=True).astype(np.float32)
-        ray = mi.Ray3f(to_jit(mi.Point3f, np.repeat(p[:, None], m, 1)), to_jit(mi.Vector3f, d.T))
+        origin = mi.Point3f(*[dr.full(mi.Float, float(c), m) for c in p])
+        ray = mi.Ray3f(origin, to_jit(mi.Vector3f, d.T))
         sampler.seed(seed * 1_000_003 + p0, m)
         spec, _, _ = integ.sample(scene, sampler, ray)
         rgb = mi.Color3f(spec)
