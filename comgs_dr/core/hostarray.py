@@ -12,7 +12,8 @@ their end falls within 60 bytes of the mapping's end for ≤ 60 of the 4096 poss
 :func:`to_jit` copies the data into a buffer with one spare packet after it and hands Dr.Jit
 a view of it (the view keeps the buffer alive). Every numpy -> Dr.Jit conversion in the
 package goes through it; ``tests/guard_alloc.py`` finds, on the paths the tests run,
-conversions that do not. Hand-written because neither Dr.Jit nor Mitsuba offers a padded or copying constructor.
+conversions that do not. Hand-written because neither Dr.Jit nor Mitsuba offers a padded
+or copying constructor.
 """
 from __future__ import annotations
 
@@ -33,11 +34,12 @@ _DTYPES = {
 def padded(a, dtype=None) -> np.ndarray:
     """A C-contiguous copy of ``a`` (as ``dtype``) followed by PAD_ELEMENTS zeroed spare
     elements in the same buffer; returned as a view of shape ``a.shape``."""
-    a = np.asarray(a, dtype=dtype)
-    buf = np.empty(a.size + PAD_ELEMENTS, a.dtype)           # [size + 16]
-    buf[:a.size] = a.reshape(-1)
+    a = np.asarray(a)
+    buf = np.empty(a.size + PAD_ELEMENTS, a.dtype if dtype is None else dtype)   # [size + 16]
+    out = buf[:a.size].reshape(a.shape)
+    np.copyto(out, a, casting="unsafe")      # one copy, also from transposed views
     buf[a.size:] = 0
-    return buf[:a.size].reshape(a.shape)
+    return out
 
 
 def host_dtype(cls) -> np.dtype:
