@@ -106,12 +106,12 @@ def outdoor_maps(paths) -> list[Path]:
             if p.stem in pano_data.HELD_OUT and pano_data.label_of(p.stem) == "outdoor"]
 
 
-def e2e_methods(head: str = "default") -> tuple[dict, dict]:
+def e2e_methods(head: str = "default", weights=None) -> tuple[dict, dict]:
     """({method: (backend key, light head)}, {backend key: backend}): ``default`` is
     estimate-light's (``backends.default_backend`` + the head); the net and push_pull with and
-    without the head."""
+    without the head. ``weights``: a completion checkpoint (None: the shipped one)."""
     from comgs_dr.lighting import backends
-    net = backends.load_network_backend()
+    net = backends.load_network_backend(weights)
     be = {"net": net, "push_pull": backends.FillBackend("push_pull"),
           "default": backends.net_sh_blend(net)}
     methods = {"default": ("default", head), "net+lights": ("net", head), "net": ("net", "none"),
@@ -153,6 +153,7 @@ def main(argv=None):
     ap.add_argument("--wedge", type=float, default=180.0, help="azimuth range seen, degrees")
     ap.add_argument("--max-elev", type=float, default=60.0)
     ap.add_argument("--light-head", default="default")
+    ap.add_argument("--weights", default=None, help="completion checkpoint (default: shipped)")
     ap.add_argument("--skies", type=int, default=0, help="also this many Mitsuba sunsky "
                     "skies (seeds never used in training; sun above 8°)")
     a = ap.parse_args(argv)
@@ -169,7 +170,7 @@ def main(argv=None):
         sun = extract_lights(sky, k=1)
         if sun and sun[0]["direction"][2] > np.sin(np.radians(8)):
             cases.append((f"sunsky_{len(cases) - len(maps)}", sky))
-    methods, be = e2e_methods(a.light_head)
+    methods, be = e2e_methods(a.light_head, a.weights)
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; trace {2 * a.res}x{a.res}, "
           f"dome {2 * a.dome_res}x{a.dome_res}, sky seen: ±{a.wedge / 2:g}° around the sun up "
           f"to {a.max_elev:g}°\n")

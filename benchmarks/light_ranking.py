@@ -1,0 +1,142 @@
+"""Which clipped region holds the strongest light? Ranking of the regions by each predictor.
+
+The dominant-light angle of ``lighting_eval`` (light visible) is decided by one choice: which of
+the panorama's clipped regions (``lights.clipped_regions``) gets the most power. This benchmark
+isolates that choice. For each map (default: the held-out shared maps, ``pano_data.HELD_OUT``)
+and ``--masks`` traced surfel masks (the same protocol as ``lighting_eval``: 128×256, random
+rotation about Z, auto exposure, masks below 40 % coverage skipped), the EV-0 LDR panorama is
+read and every observed clipped region is given a power by each predictor:
+
+* ``seen``: its EV-0 pixels (what a fill keeps; the baselines' choice);
+* ``head``: the light head (``lights.predict_lobes``);
+* ``net``: the completion net's fused EV 0/−2.5/−5 brackets (``hdr.fuse_brackets``) there;
+* ``geo a``: head^(1−a) · net^a, the two combined in log space (a = ¼, ½, ¾).
+
+Per predictor: top-1 (the region it gives the most power holds the most true power), over
+panoramas with ≥ 2 regions, and over those whose strongest region has ≥ 1.5× the next; the
+mean |log(predicted / true power)| over all regions; top-1 per map.
+
+    python benchmarks/light_ranking.py [--maps DIR] [--masks 16] [--seed 0] [--train-maps]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from collections import defaultdict
+
+import numpy as np
+
+MARGINS = (1.0, 1.5)
+MIX = (0.25, 0.5, 0.75)
+
+
+def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print) -> list[dict]:
+    """[{map, regions: [{true, seen, head, net}]}] for panoramas (``res`` × 2·``res``) with
+    ≥ 2 clipped regions (luminance powers, EV-0 radiance units)."""
+    import torch
+
+    from comgs_dr.core.colorspace import LUMA
+    from comgs_dr.core.equirect import pixel_solid_angles
+    from comgs_dr.data import pano_masks
+    from comgs_dr.lighting import backends as B
+    from comgs_dr.lighting import completion as C
+    from comgs_dr.lighting import hdr
+    from comgs_dr.lighting import lights as L
+    from comgs_dr.lighting import pano_data as P
+    from lighting_eval import load_eval_map
+    torch.set_num_threads(1)
+    net, head = B.load_network_backend(), L.load_head()
+    h, w = res, 2 * res
+    dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
+    bank = pano_masks.mask_bank(masks * len(maps), h, w, seed)
+    rng = np.random.default_rng(seed)
+    rows = []
+    for i, path in enumerate(maps):
+        gm, lab = load_eval_map(path, h), C.LABELS[P.label_of(path.stem)]
+        for j in range(masks):
+            mk, shift = bank[i * masks + j], int(rng.integers(w))
+            if mk["coverage"] < 0.4:
+                continue
+            gt = np.roll(gm, shift, 1)
+            gt = gt * P.auto_exposure(gt)                                         # [H, W, 3]
+            alpha = np.clip(np.asarray(mk["alpha"], np.float64), 0.0, 1.0)       # [H, W]
+            rgb = np.where(alpha[..., None] > 0, hdr.expose(gt, 0.0), 0.0).astype(np.float32)
+            lobes = L.predict_lobes(rgb, alpha, head, lab)
+            if len(lobes) < 2:
+                continue
+            ldrs = net.complete(rgb, np.asarray(mk["normal"], np.float32),
+                                alpha.astype(np.float32), evs=C.DEFAULT_EVS, label=lab)
+            fused = np.asarray(hdr.fuse_brackets(ldrs, C.DEFAULT_EVS), np.float64) @ LUMA
+            lum = gt @ LUMA
+            rows.append({"map": path.stem, "regions": [
+                {"true": float((lum * dw * lb["region"]).sum()),
+                 "seen": lb["luminance_power"] / lb["gain"], "head": lb["luminance_power"],
+                 "net": float((fused * dw * lb["region"]).sum())} for lb in lobes]})
+        progress(f"{path.stem}: {len(rows)} panoramas with >= 2 clipped regions so far")
+    return rows
+
+
+def predictors() -> dict:
+    def geo(a):
+        return lambda r: r["head"] ** (1 - a) * max(r["net"], 1e-12) ** a
+    out = {k: (lambda r, k=k: r[k]) for k in ("seen", "head", "net")}
+    return out | {f"geo {a:g}": geo(a) for a in MIX}
+
+
+def score(rows: list[dict], f, margin: float) -> tuple[float, int, dict]:
+    """(top-1 rate, panoramas counted, {map: (hits, n)}) over panoramas whose strongest
+    region has ≥ ``margin``× the true power of the next."""
+    hit, n, per = 0, 0, defaultdict(lambda: [0, 0])
+    for row in rows:
+        t = np.array([r["true"] for r in row["regions"]])
+        s = np.sort(t)[::-1]
+        if s[0] < margin * s[1]:
+            continue
+        ok = int(np.argmax([f(r) for r in row["regions"]]) == np.argmax(t))
+        hit, n = hit + ok, n + 1
+        per[row["map"]][0] += ok
+        per[row["map"]][1] += 1
+    return hit / max(n, 1), n, dict(per)
+
+
+def log_error(rows: list[dict], f) -> float:
+    return float(np.mean([abs(np.log(max(f(r), 1e-12) / max(r["true"], 1e-12)))
+                          for row in rows for r in row["regions"]]))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--maps", default=None, help="folder of maps (default: shared/data/hdri)")
+    ap.add_argument("--masks", type=int, default=16, help="masks per map (>= 1)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--train-maps", action="store_true", help="the maps the net and head "
+                    "trained on (in sample) instead of pano_data.HELD_OUT")
+    a = ap.parse_args(argv)
+    if a.masks < 1:
+        raise SystemExit("--masks must be >= 1")
+    import comgs_dr
+    comgs_dr.set_variant("llvm_ad_rgb")
+    from comgs_dr.data.synthetic import shared_data_dir
+    from comgs_dr.lighting import pano_data as P
+    from lighting_eval import list_maps
+    maps = [p for p in list_maps(a.maps or shared_data_dir() / "hdri")
+            if (p.stem in P.HELD_OUT) != a.train_maps]
+    if not maps:
+        raise SystemExit("no map left to evaluate")
+    t0 = time.perf_counter()
+    rows = region_powers(maps, a.masks, a.seed)
+    names = sorted({r["map"] for r in rows})
+    print(f"\n{len(rows)} panoramas with >= 2 clipped regions, {len(maps)} maps, "
+          f"{time.perf_counter() - t0:.0f} s\n")
+    print("| predictor | top-1 | top-1, margin 1.5 | mean abs log error | "
+          + " | ".join(names) + " |")
+    print("|---|---|---|---|" + "---|" * len(names))
+    for name, f in predictors().items():
+        (a1, n1, _), (a2, n2, per) = (score(rows, f, m) for m in MARGINS)
+        cells = [f"{per[m][0]}/{per[m][1]}" if m in per else "-" for m in names]
+        print(f"| {name} | {a1:.3f} ({n1}) | {a2:.3f} ({n2}) | {log_error(rows, f):.3f} | "
+              + " | ".join(cells) + " |")
+
+
+if __name__ == "__main__":
+    main()

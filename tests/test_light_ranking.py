@@ -1,0 +1,84 @@
+"""benchmarks/light_ranking.py: the top-1 and log-error scores, and a smoke run."""
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("light_ranking",
+                                                  ROOT / "benchmarks" / "light_ranking.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _row(name, true, pred):
+    return {"map": name, "regions": [{"true": t, "seen": p, "head": p, "net": p}
+                                     for t, p in zip(true, pred)]}
+
+
+def test_top1_counts_hits_and_skips_near_ties():
+    b = _bench()
+    rows = [_row("a", [3.0, 1.0], [2.0, 1.0]),         # right
+            _row("a", [3.0, 1.0], [1.0, 2.0]),         # wrong
+            _row("b", [1.1, 1.0, 0.1], [0.0, 5.0, 1.0])]  # wrong, but a near tie (1.1×)
+    f = b.predictors()["seen"]
+    assert b.score(rows, f, 1.0) == (pytest.approx(1 / 3), 3, {"a": [1, 2], "b": [0, 1]})
+    assert b.score(rows, f, 1.5) == (pytest.approx(1 / 2), 2, {"a": [1, 2]})
+    # |log(2/3)|, |log 1|, |log(1/3)|, |log 2|, |log 0 → 1e-12 / 1.1|, |log 5|, |log 10|
+    want = np.mean(np.abs(np.log([2 / 3, 1, 1 / 3, 2, 1e-12 / 1.1, 5, 10])))
+    assert b.log_error(rows, f) == pytest.approx(want)
+
+
+def test_geometric_mix_is_between_head_and_net():
+    b = _bench()
+    r = {"true": 1.0, "seen": 1.0, "head": 16.0, "net": 1.0}
+    p = b.predictors()
+    assert p["geo 0.5"](r) == pytest.approx(4.0) and p["geo 0.25"](r) == pytest.approx(8.0)
+    assert p["head"](r) == 16.0 and p["net"](r) == 1.0
+
+
+def _two_lamps(h, w):
+    """A dim room with two 2×2-pixel lamps at opposite azimuths; the one at u ≈ 0 is 10× the
+    other. Both clip white at EV 0."""
+    img = np.full((h, w, 3), 0.05)
+    img[h // 4:h // 4 + 2, 2:4] = 400.0
+    img[h // 4:h // 4 + 2, w // 2 + 2:w // 2 + 4] = 40.0
+    return img
+
+
+def test_region_powers_finds_both_lamps_and_their_true_order(tmp_path, variant, monkeypatch):
+    from comgs_dr.data import pano_masks
+    from comgs_dr.lighting import lights
+    from comgs_dr.lighting.backends import DEFAULT_WEIGHTS
+    from comgs_dr.lighting.envmap import write_exr
+    if not (Path(DEFAULT_WEIGHTS).is_file() and lights.DEFAULT_HEAD.is_file()):
+        pytest.skip("shipped weights missing")
+    h, w = 32, 64
+
+    def full_masks(n, hh, ww, seed=0, **_):
+        d = equirect_directions(hh, ww)
+        return [{"alpha": np.ones((hh, ww), np.float32), "normal": (-d).astype(np.float32),
+                 "coverage": 1.0} for _ in range(n)]
+    monkeypatch.setattr(pano_masks, "mask_bank", full_masks)
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))     # it imports lighting_eval
+    write_exr(tmp_path / "room.exr", _two_lamps(h, w), "equirect")
+    b = _bench()
+    rows = b.region_powers([tmp_path / "room.exr"], masks=2, seed=0, res=h, progress=lambda s: 0)
+    assert len(rows) == 2
+    for row in rows:
+        regs = row["regions"]
+        assert len(regs) == 2
+        t = np.array([r["true"] for r in regs])
+        assert t.max() / t.min() == pytest.approx(10.0, rel=0.2)   # the lamps' true ratio
+        for r in regs:
+            assert all(np.isfinite(r[k]) and r[k] > 0 for k in ("seen", "head", "net"))
+            assert r["head"] >= r["seen"] * (1 - 1e-9)             # the head's gain is ≥ 1
+    acc, n, _ = b.score(rows, b.predictors()["seen"], 1.5)
+    assert n == 2 and 0.0 <= acc <= 1.0
