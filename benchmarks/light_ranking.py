@@ -10,7 +10,10 @@ read and every observed clipped region is given a power by each predictor:
 * ``seen``: its EV-0 pixels (what a fill keeps; the baselines' choice);
 * ``head``: the light head (``lights.predict_lobes``);
 * ``net``: the completion net's fused EV 0/−2.5/−5 brackets (``hdr.fuse_brackets``) there;
-* ``geo a``: head^(1−a) · net^a, the two combined in log space (a = ¼, ½, ¾).
+* ``geo a``: head^(1−a) · net^a, the two combined in log space (a = ¼, ½, ¾);
+* ``rel a``: the head's power times (g_net / its geometric mean over the panorama's
+  regions)^a, g_net = net / seen: the net's gains trusted only relative to each other
+  (its brackets cannot exceed 32× the white level, so their absolute scale is capped).
 
 Per predictor: top-1 (the region it gives the most power holds the most true power), over
 panoramas with ≥ 2 regions, and over those whose strongest region has ≥ 1.5× the next; the
@@ -21,13 +24,16 @@ mean |log(predicted / true power)| over all regions; top-1 per map.
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from collections import defaultdict
+from pathlib import Path
 
 import numpy as np
 
 MARGINS = (1.0, 1.5)
 MIX = (0.25, 0.5, 0.75)
+REL = (0.5, 1.0)
 
 
 def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print) -> list[dict]:
@@ -77,14 +83,25 @@ def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print) -
 
 
 def predictors() -> dict:
+    """{name: f(regions) -> [R] predicted powers} of one panorama's regions."""
+    def key(k):
+        return lambda regs: np.array([r[k] for r in regs])
+
     def geo(a):
-        return lambda r: r["head"] ** (1 - a) * max(r["net"], 1e-12) ** a
-    out = {k: (lambda r, k=k: r[k]) for k in ("seen", "head", "net")}
-    return out | {f"geo {a:g}": geo(a) for a in MIX}
+        return lambda regs: np.array([r["head"] ** (1 - a) * max(r["net"], 1e-12) ** a
+                                      for r in regs])
+
+    def rel(a):
+        def f(regs):
+            lg = np.log([max(r["net"], 1e-12) / max(r["seen"], 1e-12) for r in regs])
+            return np.array([r["head"] for r in regs]) * np.exp(a * (lg - lg.mean()))
+        return f
+    out = {k: key(k) for k in ("seen", "head", "net")}
+    return out | {f"geo {a:g}": geo(a) for a in MIX} | {f"rel {a:g}": rel(a) for a in REL}
 
 
 def score(rows: list[dict], f, margin: float) -> tuple[float, int, dict]:
-    """(top-1 rate, panoramas counted, {map: (hits, n)}) over panoramas whose strongest
+    """(top-1 rate, panoramas counted, {map: [hits, n]}) over panoramas whose strongest
     region has ≥ ``margin``× the true power of the next."""
     hit, n, per = 0, 0, defaultdict(lambda: [0, 0])
     for row in rows:
@@ -92,7 +109,7 @@ def score(rows: list[dict], f, margin: float) -> tuple[float, int, dict]:
         s = np.sort(t)[::-1]
         if s[0] < margin * s[1]:
             continue
-        ok = int(np.argmax([f(r) for r in row["regions"]]) == np.argmax(t))
+        ok = int(np.argmax(f(row["regions"])) == np.argmax(t))
         hit, n = hit + ok, n + 1
         per[row["map"]][0] += ok
         per[row["map"]][1] += 1
@@ -100,8 +117,8 @@ def score(rows: list[dict], f, margin: float) -> tuple[float, int, dict]:
 
 
 def log_error(rows: list[dict], f) -> float:
-    return float(np.mean([abs(np.log(max(f(r), 1e-12) / max(r["true"], 1e-12)))
-                          for row in rows for r in row["regions"]]))
+    return float(np.mean([abs(np.log(max(v, 1e-12) / max(r["true"], 1e-12)))
+                          for row in rows for r, v in zip(row["regions"], f(row["regions"]))]))
 
 
 def main(argv=None):
@@ -109,6 +126,7 @@ def main(argv=None):
     ap.add_argument("--maps", default=None, help="folder of maps (default: shared/data/hdri)")
     ap.add_argument("--masks", type=int, default=16, help="masks per map (>= 1)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", default=None, help="dump the per-region powers here")
     ap.add_argument("--train-maps", action="store_true", help="the maps the net and head "
                     "trained on (in sample) instead of pano_data.HELD_OUT")
     a = ap.parse_args(argv)
@@ -125,6 +143,8 @@ def main(argv=None):
         raise SystemExit("no map left to evaluate")
     t0 = time.perf_counter()
     rows = region_powers(maps, a.masks, a.seed)
+    if a.json:
+        Path(a.json).write_text(json.dumps(rows))
     names = sorted({r["map"] for r in rows})
     print(f"\n{len(rows)} panoramas with >= 2 clipped regions, {len(maps)} maps, "
           f"{time.perf_counter() - t0:.0f} s\n")

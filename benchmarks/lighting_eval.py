@@ -83,6 +83,8 @@ def parse_args(argv=None):
                     "shipped backends.DEFAULT_WEIGHTS if present, else no net)")
     ap.add_argument("--light-head", default=None, help="light-head weights (default: the "
                     "shipped lights.DEFAULT_HEAD if present; 'none': no +lights methods)")
+    ap.add_argument("--trust-brackets", type=float, default=None, help="lights.add_lights' "
+                    "trust_brackets for the +lights methods (default: its default)")
     ap.add_argument("--diffusers", default=None, help="local diffusers model folder "
                     "(backends.DiffusersBackend); evaluated when given and importable")
     ap.add_argument("--masks", type=int, default=8, help="masks per map")
@@ -295,7 +297,9 @@ def evaluate(args, progress=print) -> dict:
                     t1 = time.perf_counter()
                     if lobes is None:
                         lobes = L.predict_lobes(rgb, alpha, head, completion.LABELS[label])
-                    est = L.add_lights(est, lobes)[0]
+                    kw = {} if args.trust_brackets is None else \
+                        {"trust_brackets": args.trust_brackets}
+                    est = L.add_lights(est, lobes, **kw)[0]
                     dt += time.perf_counter() - t1
                 est_r, _ = lm.render_spheres(est, **sphere)
                 per = lm.sphere_metrics(est_r, gt_r, smask)

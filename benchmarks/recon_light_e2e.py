@@ -138,6 +138,8 @@ def main(argv=None):
     ap.add_argument("--truth", choices=("probe", "map"), default="probe", help="score against "
                     "the light path-traced at the placement in the scene (default) or the map")
     ap.add_argument("--weights", default=None, help="completion checkpoint (default: shipped)")
+    ap.add_argument("--trust-brackets", type=float, default=None, help="EstimateConfig."
+                    "light_trust_brackets (default: its default)")
     ap.add_argument("--no-sun-view", action="store_true", help="do not aim the first sky "
                     "view at the sun (a low sun may then be missed by every view)")
     a = ap.parse_args(argv)
@@ -162,8 +164,9 @@ def main(argv=None):
         label = pano_data.label_of(p.stem) if a.label == "auto" else a.label
         for name, (kind, head) in methods.items():
             t0 = time.perf_counter()
+            kw = {} if a.trust_brackets is None else {"light_trust_brackets": a.trust_brackets}
             cfg = EstimateConfig(width=2 * a.trace_res, height=a.trace_res, oct_res=64,
-                                 label=label, light_head=head)
+                                 label=label, light_head=head, **kw)
             r = estimate_light(str(run / "point_cloud.ply"), pos, cfg, be[kind])
             dt = time.perf_counter() - t0
             row = score(p.stem, name, r, truth, dt)

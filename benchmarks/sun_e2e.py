@@ -154,6 +154,8 @@ def main(argv=None):
     ap.add_argument("--max-elev", type=float, default=60.0)
     ap.add_argument("--light-head", default="default")
     ap.add_argument("--weights", default=None, help="completion checkpoint (default: shipped)")
+    ap.add_argument("--trust-brackets", type=float, default=None, help="EstimateConfig."
+                    "light_trust_brackets (default: its default)")
     ap.add_argument("--skies", type=int, default=0, help="also this many Mitsuba sunsky "
                     "skies (seeds never used in training; sun above 8°)")
     a = ap.parse_args(argv)
@@ -182,8 +184,9 @@ def main(argv=None):
         scene, truth = build_scene(env, sun, a.dome_res, a.wedge, a.max_elev)
         for name, (kind, head) in methods.items():
             t0 = time.perf_counter()
+            kw = {} if a.trust_brackets is None else {"light_trust_brackets": a.trust_brackets}
             cfg = EstimateConfig(width=2 * a.res, height=a.res, oct_res=32, label="outdoor",
-                                 light_head=head)
+                                 light_head=head, **kw)
             r = estimate_light(scene, [0.0, 0.0, 1.0], cfg, be[kind])
             dt = time.perf_counter() - t0
             rows.append(score(stem, name, r, truth, dt))

@@ -40,8 +40,21 @@ def test_geometric_mix_is_between_head_and_net():
     b = _bench()
     r = {"true": 1.0, "seen": 1.0, "head": 16.0, "net": 1.0}
     p = b.predictors()
-    assert p["geo 0.5"](r) == pytest.approx(4.0) and p["geo 0.25"](r) == pytest.approx(8.0)
-    assert p["head"](r) == 16.0 and p["net"](r) == 1.0
+    assert p["geo 0.5"]([r])[0] == pytest.approx(4.0)
+    assert p["geo 0.25"]([r])[0] == pytest.approx(8.0)
+    assert p["head"]([r])[0] == 16.0 and p["net"]([r])[0] == 1.0
+
+
+def test_relative_mix_keeps_a_lone_region_and_reorders_by_the_nets_relative_gain():
+    b = _bench()
+    f = b.predictors()["rel 1"]
+    lone = {"true": 1.0, "seen": 1.0, "head": 30.0, "net": 1.5}
+    assert f([lone])[0] == pytest.approx(30.0)           # no other region: the head's power
+    a = {"true": 1.0, "seen": 1.0, "head": 20.0, "net": 8.0}     # net gain 8
+    c = {"true": 1.0, "seen": 1.0, "head": 30.0, "net": 1.0}     # net gain 1
+    got = f([a, c])                                      # × (8 / √8), × (1 / √8)
+    assert got == pytest.approx([20.0 * 8 ** 0.5, 30.0 / 8 ** 0.5])
+    assert np.argmax(got) == 0 and np.argmax(b.predictors()["head"]([a, c])) == 1
 
 
 def _two_lamps(h, w):

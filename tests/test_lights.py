@@ -177,6 +177,44 @@ def test_add_lights_restores_the_predicted_power():
     assert d5["action"] == "added" and d5["solid_angle"] == lobes[0]["solid_angle"]
 
 
+def _two_regions(h=32, w=64):
+    """A fused map with two disjoint 2×2 regions: the brackets hold 8 (region a) and 1
+    (region b) per pixel; lobes whose predicted powers favour b 3 : 2."""
+    fused = np.full((h, w, 3), 0.1)
+    ra, rb = np.zeros((h, w), bool), np.zeros((h, w), bool)
+    ra[8:10, 4:6], rb[8:10, 36:38] = True, True
+    fused[ra], fused[rb] = 8.0, 1.0
+    lobes = [{"region": r, "luminance_power": p, "direction": np.array([0.0, 0.0, 1.0]),
+              "sharpness": 1.0, "solid_angle": 0.01, "colour": np.ones(3), "gain": 1.0}
+             for r, p in ((ra, 2.0), (rb, 3.0))]
+    return fused, lobes
+
+
+@pytest.mark.parametrize("a", [0.0, 0.25, 0.5, 1.0])
+def test_bracket_vote_shares_the_heads_total_power(a):
+    """trust_brackets = a: the head's total (5) is kept and shared ∝ P^(1−a)·B^a, B the
+    brackets' power in the region; a = 0 or a lone region: the head's powers unchanged."""
+    fused, lobes = _two_regions()
+    dw = _dw(*fused.shape[:2])
+    lum = fused @ LUMA
+    b = np.array([float((lum * dw * lb["region"]).sum()) for lb in lobes])  # B_a = 8 B_b
+    got = L.shared_power(lobes, lum, dw, a)
+    w = np.array([2.0, 3.0]) ** (1 - a) * b ** a
+    assert got == pytest.approx(5.0 * w / w.sum(), rel=1e-12)
+    assert got.sum() == pytest.approx(5.0, rel=1e-12)
+    assert (got[0] > got[1]) == (a >= 0.25)                   # 2^.75·8^.25 > 3^.75 (a = ¼)
+    assert L.shared_power(lobes[:1], lum, dw, a) == pytest.approx([2.0])
+    out, _ = L.add_lights(fused, lobes, trust_brackets=a)
+    have = [float(((out @ LUMA) * dw)[lb["region"]].sum()) for lb in lobes]
+    assert have == pytest.approx(list(np.maximum(got, b)), rel=1e-6)   # missing power added
+    ref, _ = L.add_lights(fused, lobes)                        # the default (TRUST_BRACKETS)
+    ref_a, _ = L.add_lights(fused, lobes, trust_brackets=L.TRUST_BRACKETS)
+    assert np.array_equal(ref, ref_a)
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="trust_brackets"):
+            L.add_lights(fused, lobes, trust_brackets=bad)
+
+
 def test_head_weights_round_trip_and_errors(tmp_path):
     head = L.LightHead()
     torch.nn.init.normal_(head.mlp[0].weight)

@@ -56,12 +56,13 @@ from comgs_dr.lighting.hdr import label_equirect
 
 __all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_regions",
            "FEATURES", "region_features", "LightHead", "HeadEnsemble", "save_head", "load_head",
-           "DEFAULT_HEAD", "predict_lobes", "downsample_clipped", "add_lights", "describe_regions",
-           "regions_overlay", "SAT"]
+           "DEFAULT_HEAD", "predict_lobes", "downsample_clipped", "shared_power", "add_lights",
+           "describe_regions", "regions_overlay", "SAT", "TRUST_BRACKETS"]
 
 SAT = 0.98                 # EV-0 max channel at/above which a pixel counts as clipped
 MAX_LOG_GAIN = 25.0       # P_true / P_seen ≤ e^25 ≈ 7e10 (a real sun at EV 0: ~1e5)
 MAX_REGIONS = 8            # regions per panorama given to the head (largest observed power)
+TRUST_BRACKETS = 0.0       # add_lights: the brackets' vote on which region holds the power
 BANDS_DEG = ((0.0, 3.0), (3.0, 10.0), (10.0, 30.0))   # rings beyond the region's radius
 DEFAULT_HEAD = Path(__file__).parent / "weights" / "light_head.pt"
 _FORMAT = "comgs_dr.lighting.light_head/1"
@@ -374,8 +375,21 @@ def _match_excess(out, reg, lum, dw, target: float) -> float:
     return max(target, base)
 
 
+def shared_power(lobes, lum, dw, a: float) -> np.ndarray:
+    """[R] the lobes' luminance powers after ``add_lights``' ``trust_brackets`` = a:
+    Σ P_pred · w / Σ w, w = P_pred^(1−a) · P_map^a (P_map: ``lum`` [H, W] · ``dw`` summed over
+    the region; regions are disjoint). a = 0 or one lobe: P_pred unchanged."""
+    pred = np.array([float(lb["luminance_power"]) for lb in lobes])           # [R]
+    if a <= 0 or len(lobes) < 2:
+        return pred
+    have = np.array([float((lum * dw * np.asarray(lb["region"], bool)).sum()) for lb in lobes])
+    w = np.maximum(pred, 1e-30) ** (1.0 - a) * np.maximum(have, 1e-30) ** a
+    return pred.sum() * w / w.sum()
+
+
 def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
-               excess: str = "match") -> tuple[np.ndarray, list[dict]]:
+               excess: str = "match", trust_brackets: float = TRUST_BRACKETS
+               ) -> tuple[np.ndarray, list[dict]]:
     """The fused map [H, W, 3] plus each lobe's missing power: P_pred − (the map's luminance
     power inside the lobe's region), ≥ 0, coloured by the lobe's ``colour``.
 
@@ -391,6 +405,12 @@ def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
       luminance)^``sharpen`` (where the completion put more light; uniform for a fill);
     * ``shape="sg_region"``: inside the region's pixels, weights of "region" × the SG.
 
+    ``trust_brackets`` a ∈ [0, 1]: the head's total power Σ P_pred is shared among the
+    regions in proportion to P_pred^(1−a) · P_map^a, P_map the map's own power in the region
+    (the completion's EV < 0 brackets): the head sets how much clipped light there is, the
+    brackets also vote on which region holds it. 0: the head alone. (The brackets' absolute
+    power is not used: it cannot exceed 32× the white level, so a sun stays with the head.)
+
     Returns (map, the lobes as added: direction, sharpness, solid_angle, rgb_power,
     amplitude, gain; for "region" the direction and sharpness are those of the drawn power)."""
     if shape not in ("sg", "region", "sg_region"):
@@ -398,6 +418,9 @@ def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
                          f"{shape!r}")
     if excess not in ("match", "keep"):
         raise ValueError(f"add_lights: excess must be 'match' or 'keep', got {excess!r}")
+    a = float(trust_brackets)
+    if not 0.0 <= a <= 1.0:
+        raise ValueError(f"add_lights: trust_brackets must lie in [0, 1], got {trust_brackets!r}")
     img = np.asarray(hdr_map, np.float64)
     if img.ndim != 3 or img.shape[-1] != 3 or not np.isfinite(img).all():
         raise ValueError(f"add_lights: need a finite [H, W, 3] map, got {img.shape}")
@@ -406,13 +429,14 @@ def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
     lum = img @ LUMA
     out = img.copy()
     added, sg_lobes = [], []
-    for lb in lobes:
+    targets = shared_power(lobes, lum, dw, a)                                 # [R]
+    for lb, target in zip(lobes, targets):
         reg = np.asarray(lb["region"], bool)
         if excess == "match":
-            have = _match_excess(out, reg, lum, dw, float(lb["luminance_power"]))
+            have = _match_excess(out, reg, lum, dw, target)
         else:
             have = float((lum * dw * reg).sum())
-        missing = max(lb["luminance_power"] - have, 0.0)
+        missing = max(target - have, 0.0)
         if missing <= 0:
             continue
         rgb = missing * np.asarray(lb["colour"], np.float64)

@@ -49,6 +49,7 @@ from comgs_dr.core.equirect import coverage, equirect_dir_to_uv_np, pixel_solid_
 from comgs_dr.data.images import to_u8
 from comgs_dr.lighting import envmap, hdr
 from comgs_dr.lighting import lights as light_head
+from comgs_dr.lighting.lights import TRUST_BRACKETS
 from comgs_dr.lighting.backends import default_backend
 from comgs_dr.lighting.completion import LABELS, CompletionBackend
 from comgs_dr.surfels import load_ply, panorama
@@ -87,6 +88,8 @@ class EstimateConfig:
                                     # (skipped with a warning if absent); "none": no head
     light_head_rows: int = 256      # the head reads the panorama at most this many rows
                                     # (``head_factor``); 0: no limit
+    light_trust_brackets: float = TRUST_BRACKETS  # the brackets' vote on which
+                                    # clipped region holds the head's power (``add_lights``)
     background: str = "auto"        # step 1's learned sky behind the surfels: "auto" (the
                                     # PLY's run folder, if it has one), "none", or a folder
     clipped_max_texels: float = float("inf")  # the step-1 record of clipped sky
@@ -118,6 +121,10 @@ class EstimateConfig:
                 or int(self.light_head_rows) != self.light_head_rows or self.light_head_rows < 0:
             raise ValueError(f"EstimateConfig.light_head_rows must be an integer >= 0, got "
                              f"{self.light_head_rows!r}")
+        if isinstance(self.light_trust_brackets, bool) \
+                or not 0.0 <= float(self.light_trust_brackets) <= 1.0:
+            raise ValueError(f"EstimateConfig.light_trust_brackets must lie in [0, 1], got "
+                             f"{self.light_trust_brackets!r}")
         if isinstance(self.n_lights, bool) or int(self.n_lights) != self.n_lights \
                 or self.n_lights < 0:
             raise ValueError(f"EstimateConfig.n_lights must be an integer >= 0, got "
@@ -264,7 +271,8 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
         for lb in pred:                                      # regions back at full size
             lb["region"] = np.repeat(np.repeat(lb["region"], f, 0), f, 1)
         before = radiance
-        radiance, lobes = light_head.add_lights(radiance, pred)
+        radiance, lobes = light_head.add_lights(radiance, pred,
+                                                trust_brackets=cfg.light_trust_brackets)
         radiance = radiance.astype(np.float32)
         regions = light_head.describe_regions(pred, before, radiance)
     timings["light_head"] = time.perf_counter() - t
