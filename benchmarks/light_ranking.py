@@ -13,7 +13,9 @@ read and every observed clipped region is given a power by each predictor:
 * ``geo a``: head^(1−a) · net^a, the two combined in log space (a = ¼, ½, ¾);
 * ``rel a``: the head's power times (g_net / its geometric mean over the panorama's
   regions)^a, g_net = net / seen: the net's gains trusted only relative to each other
-  (its brackets cannot exceed 32× the white level, so their absolute scale is capped).
+  (its brackets cannot exceed 32× the white level, so their absolute scale is capped);
+* ``share a``: the head's total power shared ∝ head^(1−a) · net^a (ranks as ``geo a``):
+  ``lights.add_lights(trust_brackets=a)``, what ``estimate-light`` does.
 
 Per predictor: top-1 (the region it gives the most power holds the most true power), over
 panoramas with ≥ 2 regions, and over those whose strongest region has ≥ 1.5× the next; the
@@ -34,6 +36,7 @@ import numpy as np
 MARGINS = (1.0, 1.5)
 MIX = (0.25, 0.5, 0.75)
 REL = (0.5, 1.0)
+SHARE = (0.25, 0.5)
 
 
 def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print) -> list[dict]:
@@ -96,8 +99,15 @@ def predictors() -> dict:
             lg = np.log([max(r["net"], 1e-12) / max(r["seen"], 1e-12) for r in regs])
             return np.array([r["head"] for r in regs]) * np.exp(a * (lg - lg.mean()))
         return f
+    def share(a):                       # lights.shared_power: add_lights(trust_brackets=a)
+        def f(regs):
+            p = np.array([r["head"] for r in regs])
+            w = np.maximum(p, 1e-30) ** (1 - a) * np.maximum([r["net"] for r in regs], 1e-30) ** a
+            return p.sum() * w / w.sum()
+        return f
     out = {k: key(k) for k in ("seen", "head", "net")}
-    return out | {f"geo {a:g}": geo(a) for a in MIX} | {f"rel {a:g}": rel(a) for a in REL}
+    return (out | {f"geo {a:g}": geo(a) for a in MIX} | {f"rel {a:g}": rel(a) for a in REL}
+            | {f"share {a:g}": share(a) for a in SHARE})
 
 
 def score(rows: list[dict], f, margin: float) -> tuple[float, int, dict]:

@@ -294,7 +294,8 @@ def test_config_and_default_backend_errors(params, tmp_path, monkeypatch):
     for bad in (dict(label="space"), dict(evs=(-2.5, -5.0)), dict(evs=(0.0, 1.0)),
                 dict(oct_res=1), dict(colour_space="aces"), dict(clipped_max_texels=-1),
                 dict(clipped_max_texels=float("nan")), dict(light_head_rows=-1),
-                dict(light_head_rows=1.5)):
+                dict(light_head_rows=1.5), dict(light_trust_brackets=-0.5),
+                dict(light_trust_brackets=2.0), dict(light_trust_brackets=float("nan"))):
         with pytest.raises(ValueError, match="EstimateConfig"):
             estimate_light(_scene(params), POS, EstimateConfig(**{**SMALL, **bad}),
                            backends.FillBackend("mean"))

@@ -57,6 +57,24 @@ def test_relative_mix_keeps_a_lone_region_and_reorders_by_the_nets_relative_gain
     assert np.argmax(got) == 0 and np.argmax(b.predictors()["head"]([a, c])) == 1
 
 
+def test_share_predictor_is_what_add_lights_does():
+    """The benchmark's ``share a`` gives the powers of ``lights.shared_power``."""
+    from comgs_dr.lighting import lights as L
+    b = _bench()
+    h, w = 8, 16
+    dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
+    lum = np.random.default_rng(1).uniform(1.0, 9.0, (h, w))
+    regs, lobes = [], []
+    for i, p in enumerate((2.0, 0.5, 7.0)):
+        m = np.zeros((h, w), bool)
+        m[2 * i:2 * i + 2, 3 * i:3 * i + 3] = True
+        lobes.append({"region": m, "luminance_power": p})
+        regs.append({"true": 1.0, "seen": 1.0, "head": p, "net": float((lum * dw * m).sum())})
+    for a in b.SHARE:
+        assert b.predictors()[f"share {a:g}"](regs) == pytest.approx(
+            L.shared_power(lobes, lum, dw, a), rel=1e-12)
+
+
 def _two_lamps(h, w):
     """A dim room with two 2×2-pixel lamps at opposite azimuths; the one at u ≈ 0 is 10× the
     other. Both clip white at EV 0."""

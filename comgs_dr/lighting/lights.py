@@ -40,6 +40,11 @@ cannot:
   flat light). With "match" the region without the lobe was better on the held-out maps
   (17.3° vs 18.4°) but worse on the training maps (16.0° vs 13.2°), so the lobe stays. The
   lobes' parameters are returned (``env.json``).
+* **The brackets' vote** (``shared_power``, ``add_lights(trust_brackets=¼)``): the head sets
+  the total clipped power, and each region's share ∝ P_head^¾ · P_brackets^¼. Which of
+  several white lamps is strongest is what the head ranks worst (held out: the strongest
+  region first in 64 % of panoramas, 62 % by EV-0 power alone); the net's EV < 0 brackets
+  carry other evidence (66 %), and the mix 77 % (``benchmarks/light_ranking.py``).
 """
 from __future__ import annotations
 
@@ -62,7 +67,8 @@ __all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_reg
 SAT = 0.98                 # EV-0 max channel at/above which a pixel counts as clipped
 MAX_LOG_GAIN = 25.0       # P_true / P_seen ≤ e^25 ≈ 7e10 (a real sun at EV 0: ~1e5)
 MAX_REGIONS = 8            # regions per panorama given to the head (largest observed power)
-TRUST_BRACKETS = 0.0       # add_lights: the brackets' vote on which region holds the power
+TRUST_BRACKETS = 0.25      # add_lights: the brackets' vote on which region holds the power
+                           # (benchmarks/light_ranking.py; README "The brackets' vote")
 BANDS_DEG = ((0.0, 3.0), (3.0, 10.0), (10.0, 30.0))   # rings beyond the region's radius
 DEFAULT_HEAD = Path(__file__).parent / "weights" / "light_head.pt"
 _FORMAT = "comgs_dr.lighting.light_head/1"

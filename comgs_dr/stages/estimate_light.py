@@ -292,6 +292,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
             "trace": _jsonable(trace["meta"]), "radiance": "linear",
             "layout": {"hdr": "equirect", "oct": "octahedral"}}
     meta["light_head"] = None if head is None else str(cfg.light_head)
+    meta["light_trust_brackets"] = None if head is None else float(cfg.light_trust_brackets)
     meta["light_head_block"] = f             # the head read the panorama in f×f blocks
     return {"hdr": radiance, "oct": oct_map, "ldrs": ldrs,
             "input": {"rgb": rgb, "normal": normal, "mask": mask},
