@@ -21,7 +21,8 @@ traced from procedural surfel scenes), with a random rotation about Z:
 
 Methods: ``net`` (the completion net; observed lights re-pasted as the paper re-adds them,
 ``completion.blend_observed``), ``net+lights`` (plus the light head's lobes for lights clipped
-at EV 0, ``lighting.lights``), ``net+sh`` / ``net+sh+lights`` (the net's hole averaged with
+at EV 0, ``lighting.lights``; the brackets vote on the head's shares with
+``--trust-brackets``, default ``lights.TRUST_BRACKETS``), ``net+sh`` / ``net+sh+lights`` (the net's hole averaged with
 the SH fill indoors, the net alone outdoors, ``backends.BlendBackend`` with
 ``backends.LABEL_WEIGHTS``: what ``estimate-light`` uses), the fills ``mean``,
 ``push_pull``, ``sh`` (the baselines), ``push_pull+lights`` (ablation: the head on a baseline
