@@ -1,21 +1,16 @@
 """benchmarks/light_ranking.py: the top-1 and log-error scores, and a smoke run."""
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
+from bench_module import BENCHMARKS, load_benchmark
 
-ROOT = Path(__file__).resolve().parents[1]
+from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("light_ranking",
-                                                  ROOT / "benchmarks" / "light_ranking.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("light_ranking")
 
 
 def _row(name, true, pred):
@@ -98,7 +93,7 @@ def test_region_powers_finds_both_lamps_and_their_true_order(tmp_path, variant, 
         return [{"alpha": np.ones((hh, ww), np.float32), "normal": (-d).astype(np.float32),
                  "coverage": 1.0} for _ in range(n)]
     monkeypatch.setattr(pano_masks, "mask_bank", full_masks)
-    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))     # it imports lighting_eval
+    monkeypatch.syspath_prepend(str(BENCHMARKS))     # it imports lighting_eval
     write_exr(tmp_path / "room.exr", _two_lamps(h, w), "equirect")
     b = _bench()
     rows = b.region_powers([tmp_path / "room.exr"], masks=2, seed=0, res=h, progress=lambda s: 0)

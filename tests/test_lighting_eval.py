@@ -1,6 +1,5 @@
 """Smoke test of benchmarks/lighting_eval.py on two tiny maps with simple masks."""
 import importlib
-import importlib.util
 import json
 import re
 from pathlib import Path
@@ -8,18 +7,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bench_module import load_benchmark
+
 from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
 
-ROOT = Path(__file__).resolve().parents[1]
 COVERAGES = (0.3, 0.5, 0.7, 0.9)       # one mask below 40 % (skipped), one per group
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("lighting_eval",
-                                                  ROOT / "benchmarks" / "lighting_eval.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("lighting_eval")
 
 
 def simple_mask_bank(n, h=64, w=128, seed=0, **_):
