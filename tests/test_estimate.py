@@ -165,6 +165,9 @@ def test_light_head_restores_clipped_power(params, tmp_path):
     for rec in doc["light_head_regions"]:
         assert rec["action"] == "added" and rec["gain"] == pytest.approx(gain, rel=1e-5)
         assert rec["power"] == pytest.approx(gain * rec["brackets_power"], rel=1e-3)
+        # one gain for all and a fill's brackets (their EV-0 power): the vote changes nothing
+        assert rec["voted_power"] == pytest.approx(rec["predicted_power"], rel=1e-9)
+    assert doc["meta"]["light_trust_brackets"] == lights.TRUST_BRACKETS
     assert off["light_regions"] == []
     shipped = estimate_light(scene, POS, EstimateConfig(**SMALL), fill)   # the default head
     assert shipped["meta"]["light_head"] == "default" and np.isfinite(shipped["hdr"]).all()

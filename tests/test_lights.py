@@ -207,6 +207,9 @@ def test_bracket_vote_shares_the_heads_total_power(a):
     out, _ = L.add_lights(fused, lobes, trust_brackets=a)
     have = [float(((out @ LUMA) * dw)[lb["region"]].sum()) for lb in lobes]
     assert have == pytest.approx(list(np.maximum(got, b)), rel=1e-6)   # missing power added
+    desc = L.describe_regions(lobes, fused, out, trust_brackets=a)
+    assert [g["voted_power"] for g in desc] == pytest.approx(list(got), rel=1e-12)
+    assert [g["predicted_power"] for g in desc] == [2.0, 3.0]
     ref, _ = L.add_lights(fused, lobes)                        # the default (TRUST_BRACKETS)
     ref_a, _ = L.add_lights(fused, lobes, trust_brackets=L.TRUST_BRACKETS)
     assert np.array_equal(ref, ref_a)

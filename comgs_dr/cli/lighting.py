@@ -80,7 +80,8 @@ def _cmd_estimate_light(args) -> int:
     for i, g in enumerate(r.get("light_regions", [])):     # what the light head did
         el = float(np.degrees(np.arcsin(np.clip(g["direction"][2], -1.0, 1.0))))
         print(f"clipped region {i}: {g['solid_angle']:.4g} sr at elevation {el:+.1f}°, "
-              f"gain {g['gain']:.3g}, power {g['brackets_power']:.3g} -> {g['power']:.3g} "
+              f"gain {g['gain']:.3g}, power {g['predicted_power']:.3g} (after the brackets' "
+              f"vote {g['voted_power']:.3g}), map {g['brackets_power']:.3g} -> {g['power']:.3g} "
               f"({g['action']})")
     print(f"{'step':<12}{'seconds':>10}")
     for k, v in r["timings"].items():

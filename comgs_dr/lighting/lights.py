@@ -463,10 +463,13 @@ def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
     return out + render_lobes(sg_lobes, h, w), added
 
 
-def describe_regions(pred: list[dict], before, after) -> list[dict]:
+def describe_regions(pred: list[dict], before, after,
+                     trust_brackets: float = TRUST_BRACKETS) -> list[dict]:
     """What the light head did to each clipped region it read (``lights.predict_lobes``):
-    direction, ``region`` ([H, W] bool), solid angle, predicted gain and luminance power, the
-    fused brackets' power in the region ``before`` it and the map's power ``after`` it, and
+    direction, ``region`` ([H, W] bool), solid angle, predicted gain and luminance power,
+    ``voted_power`` (its share of the head's total after the brackets' vote, ``shared_power``
+    with ``trust_brackets`` as given to ``add_lights``), the fused brackets' power in the
+    region ``before`` it and the map's power ``after`` it, and
     ``action``: "added" (the missing power was drawn), "reduced" (the brackets' excess was
     matched down to the prediction) or "unchanged". ``add_lights`` returns only the added
     lobes; this lists every region, so a light the head weakened is not silently missing
@@ -476,14 +479,15 @@ def describe_regions(pred: list[dict], before, after) -> list[dict]:
     h, w = before.shape[:2]
     dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
     lb_, la_ = np.asarray(before, np.float64) @ LUMA, np.asarray(after, np.float64) @ LUMA
+    voted = shared_power(pred, lb_, dw, float(trust_brackets)) if pred else []
     out = []
-    for lb in pred:
+    for lb, v in zip(pred, voted):
         reg = np.asarray(lb["region"], bool)
         p0, p1 = float((lb_ * dw * reg).sum()), float((la_ * dw * reg).sum())
         tol = 1e-6 * max(p0, p1, 1e-30)
         out.append({"direction": np.asarray(lb["direction"], np.float64), "region": reg,
                     "solid_angle": float(lb["solid_angle"]), "gain": float(lb["gain"]),
-                    "predicted_power": float(lb["luminance_power"]),
+                    "predicted_power": float(lb["luminance_power"]), "voted_power": float(v),
                     "brackets_power": p0, "power": p1,
                     "action": "added" if p1 > p0 + tol else
                               "reduced" if p1 < p0 - tol else "unchanged"})

@@ -274,7 +274,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
         radiance, lobes = light_head.add_lights(radiance, pred,
                                                 trust_brackets=cfg.light_trust_brackets)
         radiance = radiance.astype(np.float32)
-        regions = light_head.describe_regions(pred, before, radiance)
+        regions = light_head.describe_regions(pred, before, radiance, cfg.light_trust_brackets)
     timings["light_head"] = time.perf_counter() - t
 
     t = time.perf_counter()
