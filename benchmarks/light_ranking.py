@@ -19,7 +19,7 @@ read and every observed clipped region is given a power by each predictor:
 
 Per predictor: top-1 (the region it gives the most power holds the most true power), over
 panoramas with ≥ 2 regions, and over those whose strongest region has ≥ 1.5× the next; the
-mean |log(predicted / true power)| over all regions; top-1 per map.
+mean |log(predicted / true power)| over all regions; top-1 per map (margin 1.5).
 
     python benchmarks/light_ranking.py [--maps DIR] [--masks 16] [--seed 0] [--train-maps]
 """
@@ -99,6 +99,7 @@ def predictors() -> dict:
             lg = np.log([max(r["net"], 1e-12) / max(r["seen"], 1e-12) for r in regs])
             return np.array([r["head"] for r in regs]) * np.exp(a * (lg - lg.mean()))
         return f
+
     def share(a):                       # lights.shared_power: add_lights(trust_brackets=a)
         def f(regs):
             p = np.array([r["head"] for r in regs])
@@ -127,6 +128,7 @@ def score(rows: list[dict], f, margin: float) -> tuple[float, int, dict]:
 
 
 def log_error(rows: list[dict], f) -> float:
+    """Mean |log(predicted / true power)| over every region of every panorama."""
     return float(np.mean([abs(np.log(max(v, 1e-12) / max(r["true"], 1e-12)))
                           for row in rows for r, v in zip(row["regions"], f(row["regions"]))]))
 
@@ -157,8 +159,9 @@ def main(argv=None):
         Path(a.json).write_text(json.dumps(rows))
     names = sorted({r["map"] for r in rows})
     print(f"\n{len(rows)} panoramas with >= 2 clipped regions, {len(maps)} maps, "
-          f"{time.perf_counter() - t0:.0f} s\n")
-    print("| predictor | top-1 | top-1, margin 1.5 | mean abs log error | "
+          f"{time.perf_counter() - t0:.0f} s; per map: top-1 hits / panoramas at margin "
+          f"{MARGINS[1]:g}\n")
+    print(f"| predictor | top-1 | top-1, margin {MARGINS[1]:g} | mean abs log error | "
           + " | ".join(names) + " |")
     print("|---|---|---|---|" + "---|" * len(names))
     for name, f in predictors().items():

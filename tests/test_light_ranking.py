@@ -106,5 +106,5 @@ def test_region_powers_finds_both_lamps_and_their_true_order(tmp_path, variant, 
         for r in regs:
             assert all(np.isfinite(r[k]) and r[k] > 0 for k in ("seen", "head", "net"))
             assert r["head"] >= r["seen"] * (1 - 1e-9)             # the head's gain is ≥ 1
-    acc, n, _ = b.score(rows, b.predictors()["seen"], 1.5)
-    assert n == 2 and 0.0 <= acc <= 1.0
+    _, n, _ = b.score(rows, b.predictors()["seen"], 1.5)
+    assert n == 2                                             # both panoramas pass the margin

@@ -177,24 +177,28 @@ def test_add_lights_restores_the_predicted_power():
     assert d5["action"] == "added" and d5["solid_angle"] == lobes[0]["solid_angle"]
 
 
-def _two_regions(h=32, w=64):
-    """A fused map with two disjoint 2×2 regions: the brackets hold 8 (region a) and 1
-    (region b) per pixel; lobes whose predicted powers favour b 3 : 2."""
+def _two_regions(h=32, w=64, level=8.0):
+    """A fused map with two disjoint 2×2 regions: the brackets hold ``level`` (region a) and
+    1 (region b) per pixel; lobes whose predicted powers favour b 3 : 2. The predictions
+    (2, 3) are far above what the pixels hold at level 8 (the missing power is added) and far
+    below it at level 1e5 (region a's excess is matched down)."""
     fused = np.full((h, w, 3), 0.1)
     ra, rb = np.zeros((h, w), bool), np.zeros((h, w), bool)
     ra[8:10, 4:6], rb[8:10, 36:38] = True, True
-    fused[ra], fused[rb] = 8.0, 1.0
+    fused[ra], fused[rb] = level, 1.0
     lobes = [{"region": r, "luminance_power": p, "direction": np.array([0.0, 0.0, 1.0]),
               "sharpness": 1.0, "solid_angle": 0.01, "colour": np.ones(3), "gain": 1.0}
              for r, p in ((ra, 2.0), (rb, 3.0))]
     return fused, lobes
 
 
+@pytest.mark.parametrize("level", [8.0, 1e5])
 @pytest.mark.parametrize("a", [0.0, 0.25, 0.5, 1.0])
-def test_bracket_vote_shares_the_heads_total_power(a):
+def test_bracket_vote_shares_the_heads_total_power(a, level):
     """trust_brackets = a: the head's total (5) is kept and shared ∝ P^(1−a)·B^a, B the
-    brackets' power in the region; a = 0 or a lone region: the head's powers unchanged."""
-    fused, lobes = _two_regions()
+    brackets' power in the region; a = 0 or a lone region: the head's powers unchanged.
+    The map ends with each region at its share, whether power is added or matched down."""
+    fused, lobes = _two_regions(level=level)
     dw = _dw(*fused.shape[:2])
     lum = fused @ LUMA
     b = np.array([float((lum * dw * lb["region"]).sum()) for lb in lobes])  # B_a = 8 B_b
@@ -206,16 +210,31 @@ def test_bracket_vote_shares_the_heads_total_power(a):
     assert L.shared_power(lobes[:1], lum, dw, a) == pytest.approx([2.0])
     out, _ = L.add_lights(fused, lobes, trust_brackets=a)
     have = [float(((out @ LUMA) * dw)[lb["region"]].sum()) for lb in lobes]
-    assert have == pytest.approx(list(np.maximum(got, b)), rel=1e-6)   # missing power added
+    floor = [float(((np.minimum(fused, 1.0) @ LUMA) * dw)[lb["region"]].sum()) for lb in lobes]
+    assert have == pytest.approx(list(np.maximum(got, floor)), rel=1e-6)   # never below white
+    assert (np.maximum(got, floor) == got).all() or (level > 100 and a > 0.25)
     desc = L.describe_regions(lobes, fused, out, trust_brackets=a)
     assert [g["voted_power"] for g in desc] == pytest.approx(list(got), rel=1e-12)
     assert [g["predicted_power"] for g in desc] == [2.0, 3.0]
+    want = ["added" if g > bb else "reduced" if bb > f else "unchanged"
+            for g, bb, f in zip(got, b, floor)]
+    assert [g["action"] for g in desc] == want
+    assert (want[0] == "reduced") == (level > 100)            # the branch the case is for
+
+
+def test_bracket_vote_default_and_bad_values():
+    fused, lobes = _two_regions()
     ref, _ = L.add_lights(fused, lobes)                        # the default (TRUST_BRACKETS)
     ref_a, _ = L.add_lights(fused, lobes, trust_brackets=L.TRUST_BRACKETS)
-    assert np.array_equal(ref, ref_a)
+    assert np.array_equal(ref, ref_a) and 0.0 < L.TRUST_BRACKETS < 1.0
+    dw = _dw(*fused.shape[:2])
     for bad in (-0.1, 1.5, float("nan")):
         with pytest.raises(ValueError, match="trust_brackets"):
             L.add_lights(fused, lobes, trust_brackets=bad)
+        with pytest.raises(ValueError, match="trust_brackets"):
+            L.shared_power(lobes, fused @ LUMA, dw, bad)
+        with pytest.raises(ValueError, match="trust_brackets"):
+            L.describe_regions(lobes, fused, fused, trust_brackets=bad)
 
 
 def test_head_weights_round_trip_and_errors(tmp_path):

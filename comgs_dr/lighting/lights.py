@@ -384,7 +384,13 @@ def _match_excess(out, reg, lum, dw, target: float) -> float:
 def shared_power(lobes, lum, dw, a: float) -> np.ndarray:
     """[R] the lobes' luminance powers after ``add_lights``' ``trust_brackets`` = a:
     Σ P_pred · w / Σ w, w = P_pred^(1−a) · P_map^a (P_map: ``lum`` [H, W] · ``dw`` summed over
-    the region; regions are disjoint). a = 0 or one lobe: P_pred unchanged."""
+    the region; regions are disjoint). a = 0 or one lobe: P_pred unchanged. The exponent
+    1 − a also compresses the head's range: a sun of gain 33 beside a sky patch of gain 2
+    (brackets 1.9× and 1.5× their EV-0 power) keeps 92 % and the patch gets 1.75×. With a
+    fill backend P_map is the EV-0 power, so the vote leans to the larger clipped region.
+    ValueError unless 0 ≤ a ≤ 1."""
+    if not 0.0 <= float(a) <= 1.0:
+        raise ValueError(f"trust_brackets must lie in [0, 1], got {a!r}")
     pred = np.array([float(lb["luminance_power"]) for lb in lobes])           # [R]
     if a <= 0 or len(lobes) < 2:
         return pred
@@ -396,12 +402,13 @@ def shared_power(lobes, lum, dw, a: float) -> np.ndarray:
 def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
                excess: str = "match", trust_brackets: float = TRUST_BRACKETS
                ) -> tuple[np.ndarray, list[dict]]:
-    """The fused map [H, W, 3] plus each lobe's missing power: P_pred − (the map's luminance
-    power inside the lobe's region), ≥ 0, coloured by the lobe's ``colour``.
+    """The fused map [H, W, 3] plus each lobe's missing power: P − (the map's luminance power
+    inside the lobe's region), ≥ 0, coloured by the lobe's ``colour``; P is the lobe's share
+    of the head's power after the brackets' vote (``shared_power``; P_pred when a = 0).
 
-    ``excess``: where the map already holds more than P_pred inside the region (a completion
+    ``excess``: where the map already holds more than P inside the region (a completion
     net's EV −2.5/−5 brackets re-predict clipped pixels), ``"match"`` scales that excess over
-    the EV-0 white level down to P_pred (the head's power is the region's power: measured on
+    the EV-0 white level down to P (the head's power is the region's power: measured on
     the held-out maps, the net put a clipped window at 1.7–1.8× its true power and 2.3× the
     head's, so the window outshone the ceiling lamps the head had restored); ``"keep"``
     leaves it (the map's light is never removed). The missing power is drawn as
@@ -415,7 +422,8 @@ def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
     regions in proportion to P_pred^(1−a) · P_map^a, P_map the map's own power in the region
     (the completion's EV < 0 brackets): the head sets how much clipped light there is, the
     brackets also vote on which region holds it. 0: the head alone. (The brackets' absolute
-    power is not used: it cannot exceed 32× the white level, so a sun stays with the head.)
+    power is not used: it cannot exceed 32× the white level, so a lone sun keeps the head's
+    power.)
 
     Returns (map, the lobes as added: direction, sharpness, solid_angle, rgb_power,
     amplitude, gain; for "region" the direction and sharpness are those of the drawn power)."""
@@ -471,7 +479,7 @@ def describe_regions(pred: list[dict], before, after,
     with ``trust_brackets`` as given to ``add_lights``), the fused brackets' power in the
     region ``before`` it and the map's power ``after`` it, and
     ``action``: "added" (the missing power was drawn), "reduced" (the brackets' excess was
-    matched down to the prediction) or "unchanged". ``add_lights`` returns only the added
+    matched down to the voted share) or "unchanged". ``add_lights`` returns only the added
     lobes; this lists every region, so a light the head weakened is not silently missing
     from ``estimate-light``'s JSON. The action is read from the powers before and after
     (relative tolerance 1e-6), which holds for ``add_lights``' default ``shape="sg_region"``
