@@ -350,8 +350,9 @@ def shared_power(lobes, lum, dw, a: float) -> np.ndarray:
     (brackets 1.9× and 1.5× their EV-0 power) keeps 92 % and the patch gets 1.75×. With a
     fill backend P_map is the EV-0 power, so the vote leans to the larger clipped region.
     ValueError unless 0 ≤ a ≤ 1."""
-    if not 0.0 <= float(a) <= 1.0:
-        raise ValueError(f"trust_brackets must lie in [0, 1], got {a!r}")
+    a_in, a = a, float(a)
+    if not 0.0 <= a <= 1.0:
+        raise ValueError(f"trust_brackets must lie in [0, 1], got {a_in!r}")
     pred = np.array([float(lb["luminance_power"]) for lb in lobes])           # [R]
     if a <= 0 or len(lobes) < 2:
         return pred
@@ -393,9 +394,6 @@ def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
                          f"{shape!r}")
     if excess not in ("match", "keep"):
         raise ValueError(f"add_lights: excess must be 'match' or 'keep', got {excess!r}")
-    a = float(trust_brackets)
-    if not 0.0 <= a <= 1.0:
-        raise ValueError(f"add_lights: trust_brackets must lie in [0, 1], got {trust_brackets!r}")
     img = np.asarray(hdr_map, np.float64)
     if img.ndim != 3 or img.shape[-1] != 3 or not np.isfinite(img).all():
         raise ValueError(f"add_lights: need a finite [H, W, 3] map, got {img.shape}")
@@ -404,7 +402,7 @@ def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
     lum = img @ LUMA
     out = img.copy()
     added, sg_lobes = [], []
-    targets = shared_power(lobes, lum, dw, a)                                 # [R]
+    targets = shared_power(lobes, lum, dw, trust_brackets)                    # [R]
     for lb, target in zip(lobes, targets):
         reg = np.asarray(lb["region"], bool)
         if excess == "match":
@@ -448,7 +446,7 @@ def describe_regions(pred: list[dict], before, after,
     h, w = before.shape[:2]
     dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
     lb_, la_ = np.asarray(before, np.float64) @ LUMA, np.asarray(after, np.float64) @ LUMA
-    voted = shared_power(pred, lb_, dw, float(trust_brackets)) if pred else []
+    voted = shared_power(pred, lb_, dw, trust_brackets)                       # [R]
     out = []
     for lb, v in zip(pred, voted):
         reg = np.asarray(lb["region"], bool)
