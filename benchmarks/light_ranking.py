@@ -21,7 +21,12 @@ Per predictor: top-1 (the region it gives the most power holds the most true pow
 panoramas with ≥ 2 regions, and over those whose strongest region has ≥ 1.5× the next; the
 mean |log(predicted / true power)| over all regions; top-1 per map (margin 1.5).
 
+``--nested``: every map, held out or not, and the vote's weight a of ``share a`` chosen
+leave-one-map-out from ``NESTED_GRID`` (top-1 on the other maps, ties broken by their log
+error), then scored on the map left out: what choosing a costs when no map is looked at twice.
+
     python benchmarks/light_ranking.py [--maps DIR] [--masks 16] [--seed 0] [--train-maps]
+    python benchmarks/light_ranking.py --nested
 """
 from __future__ import annotations
 
@@ -37,11 +42,14 @@ MARGINS = (1.0, 1.5)
 MIX = (0.25, 0.5, 0.75)
 REL = (0.5, 1.0)
 SHARE = (0.25, 0.5)
+NESTED_GRID = (0.0, 0.125, 0.25, 0.375, 0.5, 0.625, 0.75, 1.0)
 
 
-def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print) -> list[dict]:
+def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print,
+                  head_path=None) -> list[dict]:
     """[{map, regions: [{true, seen, head, net}]}] for panoramas (``res`` × 2·``res``) with
-    ≥ 2 clipped regions (luminance powers, EV-0 radiance units)."""
+    ≥ 2 clipped regions (luminance powers, EV-0 radiance units); ``head_path``: light-head
+    weights (None: the shipped head)."""
     import torch
 
     from comgs_dr.core.colorspace import LUMA
@@ -54,7 +62,8 @@ def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print) -
     from comgs_dr.lighting import pano_data as P
     from lighting_eval import load_eval_map
     torch.set_num_threads(1)
-    net, head = B.load_network_backend(), L.load_head()
+    net = B.load_network_backend()
+    head = L.load_head() if head_path is None else L.load_head(head_path)
     h, w = res, 2 * res
     dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
     bank = pano_masks.mask_bank(masks * len(maps), h, w, seed)
@@ -100,15 +109,34 @@ def predictors() -> dict:
             return np.array([r["head"] for r in regs]) * np.exp(a * (lg - lg.mean()))
         return f
 
-    def share(a):                       # lights.shared_power: add_lights(trust_brackets=a)
-        def f(regs):
-            p = np.array([r["head"] for r in regs])
-            w = np.maximum(p, 1e-30) ** (1 - a) * np.maximum([r["net"] for r in regs], 1e-30) ** a
-            return p.sum() * w / w.sum()
-        return f
     out = {k: key(k) for k in ("seen", "head", "net")}
     return (out | {f"geo {a:g}": geo(a) for a in MIX} | {f"rel {a:g}": rel(a) for a in REL}
-            | {f"share {a:g}": share(a) for a in SHARE})
+            | {f"share {a:g}": share_power(a) for a in SHARE})
+
+
+def share_power(a: float):
+    """``lights.shared_power`` on benchmark rows: the head's total shared ∝ head^(1−a)·net^a."""
+    def f(regs):
+        p = np.array([r["head"] for r in regs])
+        w = np.maximum(p, 1e-30) ** (1 - a) * np.maximum([r["net"] for r in regs], 1e-30) ** a
+        return p.sum() * w / w.sum()
+    return f
+
+
+def nested_choice(rows: list[dict], grid=NESTED_GRID, fixed=(0.0, 0.25)) -> dict:
+    """Leave-one-map-out choice of ``share a``: {map: a chosen on the other maps} and
+    {"nested" | "a=<x>": [hits, panoramas]} summed over the maps left out (margin 1)."""
+    maps = sorted({r["map"] for r in rows})
+    chosen, tot = {}, {k: [0, 0] for k in ["nested"] + [f"a={x:g}" for x in fixed]}
+    for m in maps:
+        rest, held = [r for r in rows if r["map"] != m], [r for r in rows if r["map"] == m]
+        chosen[m] = max(grid, key=lambda a: (score(rest, share_power(a), 1.0)[0],
+                                             -log_error(rest, share_power(a))))
+        for k, a in [("nested", chosen[m])] + [(f"a={x:g}", x) for x in fixed]:
+            _, n, per = score(held, share_power(a), 1.0)
+            tot[k][0] += per.get(m, [0, 0])[0]
+            tot[k][1] += n
+    return {"chosen": chosen, "hits": tot}
 
 
 def score(rows: list[dict], f, margin: float) -> tuple[float, int, dict]:
@@ -141,6 +169,10 @@ def main(argv=None):
     ap.add_argument("--json", default=None, help="dump the per-region powers here")
     ap.add_argument("--train-maps", action="store_true", help="the maps the net and head "
                     "trained on (in sample) instead of pano_data.HELD_OUT")
+    ap.add_argument("--light-head", default=None, help="light-head weights (default: the "
+                    "shipped head)")
+    ap.add_argument("--nested", action="store_true", help="every map, and the vote's weight "
+                    "chosen leave-one-map-out (see the module docstring)")
     a = ap.parse_args(argv)
     if a.masks < 1:
         raise SystemExit("--masks must be >= 1")
@@ -150,14 +182,25 @@ def main(argv=None):
     from comgs_dr.lighting import pano_data as P
     from lighting_eval import list_maps
     maps = [p for p in list_maps(a.maps or shared_data_dir() / "hdri")
-            if (p.stem in P.HELD_OUT) != a.train_maps]
+            if a.nested or (p.stem in P.HELD_OUT) != a.train_maps]
     if not maps:
         raise SystemExit("no map left to evaluate")
     t0 = time.perf_counter()
-    rows = region_powers(maps, a.masks, a.seed)
+    rows = region_powers(maps, a.masks, a.seed, head_path=a.light_head)
     if a.json:
         Path(a.json).write_text(json.dumps(rows))
     names = sorted({r["map"] for r in rows})
+    if a.nested:
+        res = nested_choice(rows)
+        print(f"\nleave-one-map-out choice of the vote's weight over {len(names)} maps "
+              f"({time.perf_counter() - t0:.0f} s)\n\n| map left out | a chosen on the "
+              "others |\n|---|---|")
+        for m, x in res["chosen"].items():
+            print(f"| {m} | {x:g} |")
+        print("\n| rule | top-1 on the maps left out |\n|---|---|")
+        for k, (h, n) in res["hits"].items():
+            print(f"| {k} | {h}/{n} = {h / max(n, 1):.3f} |")
+        return res
     print(f"\n{len(rows)} panoramas with >= 2 clipped regions, {len(maps)} maps, "
           f"{time.perf_counter() - t0:.0f} s; per map: top-1 hits / panoramas at margin "
           f"{MARGINS[1]:g}\n")

@@ -138,6 +138,8 @@ def main(argv=None):
     ap.add_argument("--truth", choices=("probe", "map"), default="probe", help="score against "
                     "the light path-traced at the placement in the scene (default) or the map")
     ap.add_argument("--weights", default=None, help="completion checkpoint (default: shipped)")
+    ap.add_argument("--light-head", default="default", help="light-head weights (default: "
+                    "the shipped head)")
     ap.add_argument("--trust-brackets", type=float, default=None, help="EstimateConfig."
                     "light_trust_brackets (default: its default)")
     ap.add_argument("--no-sun-view", action="store_true", help="do not aim the first sky "
@@ -150,7 +152,7 @@ def main(argv=None):
     from comgs_dr.train import background as bgenv
     from sun_e2e import TABLE_HEAD, e2e_methods, outdoor_maps, print_summary, score
     maps = outdoor_maps(a.maps)
-    methods, be = e2e_methods(weights=a.weights)
+    methods, be = e2e_methods(head=a.light_head, weights=a.weights)
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; capture {a.res} px, "
           f"{a.views}+{a.sky_views} views, step 1 {a.iterations} it; trace "
           f"{2 * a.trace_res}x{a.trace_res}\n", flush=True)

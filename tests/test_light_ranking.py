@@ -31,6 +31,28 @@ def test_top1_counts_hits_and_skips_near_ties():
     assert b.log_error(rows, f) == pytest.approx(want)
 
 
+def _rank_row(name, head_right: bool):
+    """Two regions, the first truly 4× stronger; the head or the net ranks it first."""
+    good, bad = (3.0, 1.0), (1.0, 3.0)
+    h, n = (good, bad) if head_right else (bad, good)
+    return {"map": name, "regions": [{"true": t, "seen": 1.0, "head": hh, "net": nn}
+                                     for t, hh, nn in zip((4.0, 1.0), h, n)]}
+
+
+def test_nested_choice_picks_the_weight_on_the_other_maps_only():
+    """Maps a, b, c: the net ranks right (a = 1 wins there); map d: the head does. Left out,
+    d gets the others' a = 1 and loses; each of a, b, c still sees two net-right maps."""
+    b = _bench()
+    rows = [_rank_row(m, False) for m in "abc"] + [_rank_row("d", True)]
+    res = b.nested_choice(rows, grid=(0.0, 1.0), fixed=(0.0,))
+    assert res["chosen"] == dict.fromkeys("abcd", 1.0)
+    assert res["hits"] == {"nested": [3, 4], "a=0": [1, 4]}
+    rows = [_rank_row(m, True) for m in "abc"] + [_rank_row("d", False)]
+    res = b.nested_choice(rows, grid=(0.0, 1.0), fixed=(0.0,))
+    assert res["chosen"] == dict.fromkeys("abcd", 0.0)
+    assert res["hits"] == {"nested": [3, 4], "a=0": [3, 4]}
+
+
 def test_geometric_mix_is_between_head_and_net():
     b = _bench()
     r = {"true": 1.0, "seen": 1.0, "head": 16.0, "net": 1.0}
