@@ -286,6 +286,28 @@ def test_blend_backend_keeps_the_first_where_seen_and_averages_radiance_in_the_h
     assert blend.name == "push_pull+sh"
 
 
+def test_blend_backend_chroma_first_keeps_the_first_colour_at_the_mean_luminance():
+    from comgs_dr.core.colorspace import LUMA
+    rgb, normal, mask = _pano()
+    rgb = rgb * np.array([1.0, 0.7, 0.4])                     # a warm scene: colours differ
+    a, b = backends.FillBackend("push_pull"), backends.FillBackend("sh")
+    blend = backends.BlendBackend([a, b], [3.0, 1.0], keep_lights=False, chroma="first")
+    mean = backends.BlendBackend([a, b], [3.0, 1.0], keep_lights=False)
+    out, ref, oa = (m.complete(rgb, normal, mask) for m in (blend, mean, a))
+    seen, hole = mask > 0.5, mask < 0.5
+    for e in completion.DEFAULT_EVS:
+        np.testing.assert_array_equal(out[e][seen], oa[e][seen])
+        r_out, r_ref, r_a = (hdr.unexpose(np.asarray(x[e], np.float64), e) for x in (out, ref, oa))
+        ok = hole & (r_out.max(-1) < 0.9 * 2.0 ** -e) & (r_a @ LUMA > 1e-6)    # none clipped
+        assert ok.sum() > 0.5 * hole.sum()
+        np.testing.assert_allclose((r_out @ LUMA)[ok], (r_ref @ LUMA)[ok], rtol=1e-3, atol=1e-5)
+        chroma = lambda r: r[ok] / (r[ok] @ LUMA)[:, None]             # noqa: E731
+        np.testing.assert_allclose(chroma(r_out), chroma(r_a), rtol=1e-3, atol=1e-4)
+    assert not np.allclose(out[0.0][hole], ref[0.0][hole], atol=1e-3)   # it is not the mean
+    with pytest.raises(ValueError, match="chroma"):
+        backends.BlendBackend([a, b], chroma="sh")
+
+
 def test_blend_backend_rejects_bad_weights_and_inputs():
     fill = backends.FillBackend("sh")
     for w in ([1.0], [1.0, -1.0], [0.0, 0.0], [np.nan, 1.0]):
