@@ -144,6 +144,23 @@ def test_light_trust_brackets_reaches_the_vote(params, monkeypatch):
     assert r["meta"]["light_trust_brackets"] == 0.7
 
 
+def test_near_tie_of_clipped_lights_is_reported(params, monkeypatch, caplog):
+    """Two clipped lights of about equal power: meta light_dominance and a warning."""
+    from comgs_dr.lighting import lights
+    real = lights.describe_regions
+
+    def two(*a, **k):
+        out = real(*a, **k)
+        g = dict(out[0]) if out else {"power": 1.0}
+        return [g, dict(g, power=float(g["power"]) / 1.2)]
+    monkeypatch.setattr(lights, "describe_regions", two)
+    with caplog.at_level("WARNING", logger="comgs_dr.stages.estimate_light"):
+        r = estimate_light(_scene(params), POS, EstimateConfig(**SMALL),
+                           backends.FillBackend("push_pull"))
+    assert r["meta"]["light_dominance"] == pytest.approx(1.2)
+    assert "1.20x apart" in caplog.text
+
+
 def test_light_head_restores_clipped_power(params, tmp_path):
     """A head answering log gain 2.127 (softplus(2)): the clipped window's power is multiplied
     by e^2.127 exactly, the rest of the map is untouched, and env.json lists the lobe."""
@@ -238,6 +255,9 @@ def test_cli_on_ply(params, tiny_weights, tmp_path, capsys):
     lines = [l for l in text.splitlines() if l.startswith("clipped region ")]
     assert len(lines) == len(doc["light_head_regions"]) >= 1        # the white window
     assert all(l.endswith(("(added)", "(reduced)", "(unchanged)")) for l in lines)
+    dom = doc["meta"]["light_dominance"]                   # one line when ≥ 2 regions
+    assert (dom is None) == (len(lines) < 2)
+    assert ("strongest clipped light" in text) == (dom is not None)
     assert main(args + ["--backend", "sh"]) == 0
     assert "FillBackend(sh)" in capsys.readouterr().out
     # errors -> exit code 2 with a message

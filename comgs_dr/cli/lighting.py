@@ -10,7 +10,7 @@ import numpy as np
 from comgs_dr import set_variant
 from comgs_dr.core.config import add_config_arguments, config_overrides
 from comgs_dr.eval.lighting_metrics import compare_maps
-from comgs_dr.lighting import backends, envmap
+from comgs_dr.lighting import backends, envmap, lights
 from comgs_dr.lighting.hdr import area_resize_equirect
 from comgs_dr.stages import train_completion, train_light_head
 from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light, write_outputs
@@ -83,6 +83,11 @@ def _cmd_estimate_light(args) -> int:
               f"gain {g['gain']:.3g}, power {g['predicted_power']:.3g} (after the brackets' "
               f"vote {g['voted_power']:.3g}), map {g['brackets_power']:.3g} -> {g['power']:.3g} "
               f"({g['action']})")
+    dom = r["meta"].get("light_dominance")
+    if dom is not None:
+        print(f"strongest clipped light: {dom:.3g}x the next"
+              + (" (a near tie: the dominant direction is uncertain)"
+                 if dom < lights.DOMINANCE_MARGIN else ""))
     print(f"{'step':<12}{'seconds':>10}")
     for k, v in r["timings"].items():
         print(f"{k:<12}{v:>10.3f}")

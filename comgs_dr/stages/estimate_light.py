@@ -294,6 +294,11 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     meta["light_head"] = None if head is None else str(cfg.light_head)
     meta["light_trust_brackets"] = None if head is None else float(cfg.light_trust_brackets)
     meta["light_head_block"] = f             # the head read the panorama in f×f blocks
+    dom = meta["light_dominance"] = light_head.dominance(regions)
+    if dom is not None and dom < light_head.DOMINANCE_MARGIN:
+        log.warning("estimate_light: the two strongest clipped lights are %.2fx apart: which "
+                    "dominates, so where shadows point, is uncertain (light_head_regions "
+                    "in the JSON)", dom)
     return {"hdr": radiance, "oct": oct_map, "ldrs": ldrs,
             "input": {"rgb": rgb, "normal": normal, "mask": mask},
             "lights": lights, "lobes": lobes, "light_regions": regions, "coverage": cov,
