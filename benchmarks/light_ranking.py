@@ -63,7 +63,7 @@ def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print,
     from lighting_eval import load_eval_map
     torch.set_num_threads(1)
     net = B.load_network_backend()
-    head = L.load_head() if head_path is None else L.load_head(head_path)
+    head = L.load_head() if head_path in (None, "default") else L.load_head(head_path)
     h, w = res, 2 * res
     dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
     bank = pano_masks.mask_bank(masks * len(maps), h, w, seed)
@@ -125,8 +125,11 @@ def share_power(a: float):
 
 def nested_choice(rows: list[dict], grid=NESTED_GRID, fixed=(0.0, 0.25)) -> dict:
     """Leave-one-map-out choice of ``share a``: {map: a chosen on the other maps} and
-    {"nested" | "a=<x>": [hits, panoramas]} summed over the maps left out (margin 1)."""
+    {"nested" | "a=<x>": [hits, panoramas]} summed over the maps left out (margin 1). Ties
+    in top-1 and log error go to the smallest a (the first in ``grid``)."""
     maps = sorted({r["map"] for r in rows})
+    if len(maps) < 2:
+        raise ValueError(f"nested_choice: need rows of at least two maps, got {maps}")
     chosen, tot = {}, {k: [0, 0] for k in ["nested"] + [f"a={x:g}" for x in fixed]}
     for m in maps:
         rest, held = [r for r in rows if r["map"] != m], [r for r in rows if r["map"] == m]
@@ -176,6 +179,8 @@ def main(argv=None):
     a = ap.parse_args(argv)
     if a.masks < 1:
         raise SystemExit("--masks must be >= 1")
+    if a.nested and a.train_maps:
+        raise SystemExit("--nested takes every map; leave out --train-maps")
     import comgs_dr
     comgs_dr.set_variant("llvm_ad_rgb")
     from comgs_dr.data.synthetic import shared_data_dir

@@ -306,6 +306,8 @@ def test_blend_backend_chroma_first_keeps_the_first_colour_at_the_mean_luminance
     assert not np.allclose(out[0.0][hole], ref[0.0][hole], atol=1e-3)   # it is not the mean
     with pytest.raises(ValueError, match="chroma"):
         backends.BlendBackend([a, b], chroma="sh")
+    assert backends.net_sh_blend(a, chroma="first").chroma == "first"
+    assert backends.net_sh_blend(a).chroma == backends.BLEND_CHROMA == "mean"
 
 
 def test_blend_backend_rejects_bad_weights_and_inputs():

@@ -145,20 +145,26 @@ def test_light_trust_brackets_reaches_the_vote(params, monkeypatch):
 
 
 def test_near_tie_of_clipped_lights_is_reported(params, monkeypatch, caplog):
-    """Two clipped lights of about equal power: meta light_dominance and a warning."""
+    """Two clipped lights 1.2x apart: meta light_dominance and a warning; 2x apart: none."""
     from comgs_dr.lighting import lights
     real = lights.describe_regions
+    ratio = [1.2]
 
     def two(*a, **k):
         out = real(*a, **k)
         g = dict(out[0]) if out else {"power": 1.0}
-        return [g, dict(g, power=float(g["power"]) / 1.2)]
+        return [g, dict(g, power=float(g["power"]) / ratio[0])]
     monkeypatch.setattr(lights, "describe_regions", two)
-    with caplog.at_level("WARNING", logger="comgs_dr.stages.estimate_light"):
-        r = estimate_light(_scene(params), POS, EstimateConfig(**SMALL),
-                           backends.FillBackend("push_pull"))
-    assert r["meta"]["light_dominance"] == pytest.approx(1.2)
-    assert "1.20x apart" in caplog.text
+    for r_ in (1.2, 2.0):
+        ratio[0] = r_
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="comgs_dr.stages.estimate_light"):
+            r = estimate_light(_scene(params), POS, EstimateConfig(**SMALL),
+                               backends.FillBackend("push_pull"))
+        assert r["meta"]["light_dominance"] == pytest.approx(r_)
+        warned = "near tie" in caplog.text
+        assert warned == (r_ < lights.DOMINANCE_MARGIN)
+        assert warned == ("is 1.20x the next" in caplog.text)
 
 
 def test_light_head_restores_clipped_power(params, tmp_path):
@@ -257,7 +263,7 @@ def test_cli_on_ply(params, tiny_weights, tmp_path, capsys):
     assert all(l.endswith(("(added)", "(reduced)", "(unchanged)")) for l in lines)
     dom = doc["meta"]["light_dominance"]                   # one line when ≥ 2 regions
     assert (dom is None) == (len(lines) < 2)
-    assert ("strongest clipped light" in text) == (dom is not None)
+    assert ("strongest observed clipped light" in text) == (dom is not None)
     assert main(args + ["--backend", "sh"]) == 0
     assert "FillBackend(sh)" in capsys.readouterr().out
     # errors -> exit code 2 with a message

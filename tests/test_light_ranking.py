@@ -51,6 +51,12 @@ def test_nested_choice_picks_the_weight_on_the_other_maps_only():
     res = b.nested_choice(rows, grid=(0.0, 1.0), fixed=(0.0,))
     assert res["chosen"] == dict.fromkeys("abcd", 0.0)
     assert res["hits"] == {"nested": [3, 4], "a=0": [3, 4]}
+    # two maps that disagree: each is scored with the other's choice and misses (a choice
+    # made on both maps would tie and hit one of them)
+    res = b.nested_choice([_rank_row("a", False), _rank_row("b", True)], grid=(0.0, 1.0))
+    assert res["chosen"] == {"a": 0.0, "b": 1.0} and res["hits"]["nested"] == [0, 2]
+    with pytest.raises(ValueError, match="two maps"):
+        b.nested_choice([_rank_row("a", True)])
 
 
 def test_geometric_mix_is_between_head_and_net():

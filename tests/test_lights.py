@@ -240,7 +240,7 @@ def test_bracket_vote_default_and_bad_values():
 def test_dominance_is_the_strongest_over_the_next():
     assert L.dominance([]) is None and L.dominance([{"power": 3.0}]) is None
     assert L.dominance([{"power": 1.0}, {"power": 4.0}, {"power": 2.0}]) == 2.0
-    assert L.dominance([{"power": 1.0}, {"power": 0.0}]) == float("inf")
+    assert L.dominance([{"power": 1.0}, {"power": 0.0}]) is None     # no second light
 
 
 def test_head_weights_round_trip_and_errors(tmp_path):

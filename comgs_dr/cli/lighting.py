@@ -85,8 +85,8 @@ def _cmd_estimate_light(args) -> int:
               f"({g['action']})")
     dom = r["meta"].get("light_dominance")
     if dom is not None:
-        print(f"strongest clipped light: {dom:.3g}x the next"
-              + (" (a near tie: the dominant direction is uncertain)"
+        print(f"strongest observed clipped light: {dom:.2f}x the next"
+              + (" (a near tie: see light_head_regions in the JSON)"
                  if dom < lights.DOMINANCE_MARGIN else ""))
     print(f"{'step':<12}{'seconds':>10}")
     for k, v in r["timings"].items():

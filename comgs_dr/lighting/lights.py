@@ -154,16 +154,16 @@ def region_features(ldr, mask, regions, label: int = 2, sat: float = SAT) -> np.
     """[R, len(FEATURES)] float32 descriptors of ``regions`` (``clipped_regions``) in the EV-0
     panorama; luminances are EV-0 radiance (white level 1), logs of (x + 1e-3).
 
-    "compactness" (solid angle / the cap reaching the farthest pixel centre) is unbounded
-    for a region of one to three pixels, whose centres barely leave the centroid: up to 2.5e6
-    (8 % of the training regions above 100; the head standardises it by a std of 4.3e5, so
-    it is near constant for the rest). It stays because the shipped head was fitted with it.
+    "compactness" (solid angle / the cap reaching the farthest pixel centre, that angle
+    floored at 1e-3°) is resolution-dependent and huge for a region of one to three pixels,
+    whose centres barely leave the centroid: up to 2.5e6 (8 % of the training regions above
+    100; the head standardises it by a std of 4.3e5, so it is near constant for the rest). It stays because the shipped head was fitted with it.
     Measured on one training set (leave-one-real-map-out MAE of the log gain, fitting seeds
     0 / 1): with it 0.741 / 0.793, zeroed 0.745 / 0.796, log-clipped to [1e-3, 1e3] 0.734 /
     –: below the seeds' spread. A head refitted on fresh data with a bounded version (each
     pixel's equal-area radius added to the cap; CV 0.766 / 0.795, zeroed 0.759 / 0.806) had
-    held-out log power error 0.80 against the shipped head's 0.69 (``light_ranking``), at
-    the same top-1: not shipped."""
+    held-out log power error 0.79 against the shipped head's 0.69 and top-1 0.660 against
+    0.642 (``light_ranking``): not shipped."""
     ldr, seen = _check(ldr, mask)
     h, w = seen.shape
     dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
@@ -476,15 +476,17 @@ DOMINANCE_MARGIN = 1.5     # below it, which clipped light dominates is a near t
 
 
 def dominance(regions: list[dict]) -> float | None:
-    """Power of the strongest clipped region over the next (``describe_regions``' "power":
-    the map's after the head), or None with fewer than two. Near 1 the dominant light's
-    direction, and so a composited object's shadow, flips with a small power error (the head
-    with the brackets' vote ranked the truly strongest region first in 77–91 % of the
-    panoramas with several, ``benchmarks/light_ranking.py``)."""
+    """Power of the strongest observed clipped region over the next (``describe_regions``'
+    "power": the map's after the head), or None with fewer than two regions or a second of
+    zero power. It says nothing of lights the completion put in the hole. Below
+    ``DOMINANCE_MARGIN`` the dominant direction, and so a composited object's shadow, flips
+    with a small power error; above it the ranking can still be wrong (the head with the
+    brackets' vote puts the truly strongest region first in 77 % of the held-out panoramas
+    with ≥ 2 clipped regions, 91 % on its training maps: ``benchmarks/light_ranking.py``)."""
     p = sorted((float(g["power"]) for g in regions), reverse=True)
-    if len(p) < 2:
+    if len(p) < 2 or not p[1] > 0:
         return None
-    return p[0] / p[1] if p[1] > 0 else float("inf")
+    return p[0] / p[1]
 
 
 ACTION_RGB = {"added": (1.0, 0.55, 0.0), "reduced": (0.0, 0.8, 1.0), "unchanged": (0.6, 0.6, 0.6)}

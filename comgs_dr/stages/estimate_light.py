@@ -296,9 +296,8 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     meta["light_head_block"] = f             # the head read the panorama in f×f blocks
     dom = meta["light_dominance"] = light_head.dominance(regions)
     if dom is not None and dom < light_head.DOMINANCE_MARGIN:
-        log.warning("estimate_light: the two strongest clipped lights are %.2fx apart: which "
-                    "dominates, so where shadows point, is uncertain (light_head_regions "
-                    "in the JSON)", dom)
+        log.warning("estimate_light: the strongest observed clipped light is %.2fx the next: "
+                    "which dominates, so where shadows point, is a near tie", dom)
     return {"hdr": radiance, "oct": oct_map, "ldrs": ldrs,
             "input": {"rgb": rgb, "normal": normal, "mask": mask},
             "lights": lights, "lobes": lobes, "light_regions": regions, "coverage": cov,
