@@ -219,8 +219,8 @@ LABEL_WEIGHTS = {"outdoor": (1.0, 0.0)}
 #: for the mean, all of it from ``blender_interior`` at 40–60 % (4.82° vs 6.52°, where the SH
 #: fill alone has 8.57°); on every other indoor map × coverage group "first" lost 0.0–0.5°.
 #: The 8 training maps (``--labels``, 119 samples, 1 draw): 3.250° vs 3.221°; the held-out
-#: maps with every label "unknown" (the blend everywhere, 77 samples, 1 draw): 5.86° vs 5.62°. si-RMSE and
-#: relighting within 0.001 and 0.03 dB in all three.
+#: maps with every label "unknown" (the blend everywhere, 77 samples, 1 draw): 5.86° vs
+#: 5.62°. si-RMSE and relighting within 0.001 and 0.03 dB in all three.
 BLEND_CHROMA = "mean"
 
 

@@ -157,8 +157,8 @@ def region_features(ldr, mask, regions, label: int = 2, sat: float = SAT) -> np.
     "compactness" (solid angle / the cap reaching the farthest pixel centre, that angle
     floored at 1e-3°) is resolution-dependent and huge for a region of one to three pixels,
     whose centres barely leave the centroid: up to 2.5e6 (8 % of the training regions above
-    100; the head standardises it by a std of 4.3e5, so it is near constant for the rest). It stays because the shipped head was fitted with it.
-    Measured on one training set (leave-one-real-map-out MAE of the log gain, fitting seeds
+    100; the head standardises it by a std of 4.3e5, so it is near constant for the rest).
+    It stays because the shipped head was fitted with it. Measured on one training set (leave-one-real-map-out MAE of the log gain, fitting seeds
     0 / 1): with it 0.741 / 0.793, zeroed 0.745 / 0.796, log-clipped to [1e-3, 1e3] 0.734 /
     –: below the seeds' spread. A head refitted on fresh data with a bounded version (each
     pixel's equal-area radius added to the cap; CV 0.766 / 0.795, zeroed 0.759 / 0.806) had
