@@ -23,7 +23,8 @@ Methods: ``net`` (the completion net; observed lights re-pasted as the paper re-
 ``completion.blend_observed``), ``net+lights`` (plus the light head's lobes for lights clipped
 at EV 0, ``lighting.lights``; the brackets vote on the head's shares with
 ``--trust-brackets``, default ``lights.TRUST_BRACKETS``), ``net+sh`` / ``net+sh+lights`` (the net's hole averaged with
-the SH fill indoors (``--blend-chroma``), the net alone outdoors, ``backends.BlendBackend`` with
+the SH fill indoors, the net's luminance outdoors in the colour of the mean
+(``--blend-colour``), ``backends.BlendBackend`` with
 ``backends.LABEL_WEIGHTS``: what ``estimate-light`` uses), the fills ``mean``,
 ``push_pull``, ``sh`` (the baselines), ``push_pull+lights`` (ablation: the head on a baseline
 fill) and ``diffusers`` when ``--diffusers DIR`` names a local model. "Ours" is
@@ -88,8 +89,8 @@ def parse_args(argv=None):
                     "trust_brackets for the +lights methods (default: its default)")
     ap.add_argument("--diffusers", default=None, help="local diffusers model folder "
                     "(backends.DiffusersBackend); evaluated when given and importable")
-    ap.add_argument("--blend-chroma", choices=("mean", "first"), default=None, help="the "
-                    "net+sh blend's colour in the hole (default: backends.BLEND_CHROMA)")
+    ap.add_argument("--blend-colour", choices=("default", "mean", "first"), default="default",
+                    help="the net+sh blend's colour in the hole (backends.net_sh_blend)")
     ap.add_argument("--masks", type=int, default=8, help="masks per map")
     ap.add_argument("--res", type=int, default=128, help="eval height (width = 2·res)")
     ap.add_argument("--seed", type=int, default=0)
@@ -163,7 +164,8 @@ class _LastCall:
         return {e: v.copy() for e, v in self.out.items()}
 
 
-def make_methods(weights, head_path=None, diffusers=None, chroma=None) -> tuple[dict, object]:
+def make_methods(weights, head_path=None, diffusers=None,
+                 colour: str = "default") -> tuple[dict, object]:
     """({name: (backend, with_lights)}, light head or None): the net (if weights) and
     net+lights (if a head), the fill baselines, push_pull+lights, diffusers (if asked)."""
     backends = importlib.import_module("comgs_dr.lighting.backends")
@@ -182,7 +184,7 @@ def make_methods(weights, head_path=None, diffusers=None, chroma=None) -> tuple[
         methods["net"] = (net, False)
         if head is not None:
             methods["net+lights"] = (net, True)
-        blend = backends.net_sh_blend(net, **({"chroma": chroma} if chroma else {}))
+        blend = backends.net_sh_blend(net, colour)                  # as estimate-light
         methods["net+sh"] = (blend, False)
         if head is not None:
             methods["net+sh+lights"] = (blend, True)
@@ -257,7 +259,7 @@ def evaluate(args, progress=print) -> dict:
             raise FileNotFoundError(f"--held-out: none of {pano.HELD_OUT} in {args.maps}")
         labels = {p.stem: pano.label_of(p.stem) for p in maps} | labels
     methods, head = make_methods(args.weights, args.light_head, args.diffusers,
-                                 args.blend_chroma)
+                                 args.blend_colour)
     h, w = args.res, 2 * args.res
     rng = np.random.default_rng(args.seed)
     sphere = dict(size=args.sphere_size, azimuths=lm.ARRAY_AZIMUTHS, quad_height=args.quad)

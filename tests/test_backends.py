@@ -286,28 +286,61 @@ def test_blend_backend_keeps_the_first_where_seen_and_averages_radiance_in_the_h
     assert blend.name == "push_pull+sh"
 
 
-def test_blend_backend_chroma_first_keeps_the_first_colour_at_the_mean_luminance():
+def _colour_check(out, ref_lum, ref_col, mask):
+    """In the hole of every bracket: luminance of ``ref_lum``, chromaticity of ``ref_col``."""
     from comgs_dr.core.colorspace import LUMA
+    hole = mask < 0.5
+    for e in completion.DEFAULT_EVS:
+        r_out, r_l, r_c = (hdr.unexpose(np.asarray(x[e], np.float64), e)
+                           for x in (out, ref_lum, ref_col))
+        ok = (hole & (r_out.max(-1) < 0.9 * 2.0 ** -e) & (r_c @ LUMA > 1e-6)
+              & (r_l.max(-1) < 0.9 * 2.0 ** -e) & (r_c.max(-1) < 0.9 * 2.0 ** -e))
+        assert ok.sum() > 0.5 * hole.sum()                               # none clipped there
+        np.testing.assert_allclose((r_out @ LUMA)[ok], (r_l @ LUMA)[ok], rtol=1e-3, atol=1e-5)
+        chroma = lambda r: r[ok] / (r[ok] @ LUMA)[:, None]             # noqa: E731
+        np.testing.assert_allclose(chroma(r_out), chroma(r_c), rtol=1e-3, atol=1e-4)
+
+
+def test_blend_backend_mixes_colour_apart_from_luminance():
     rgb, normal, mask = _pano()
     rgb = rgb * np.array([1.0, 0.7, 0.4])                     # a warm scene: colours differ
     a, b = backends.FillBackend("push_pull"), backends.FillBackend("sh")
-    blend = backends.BlendBackend([a, b], [3.0, 1.0], keep_lights=False, chroma="first")
-    mean = backends.BlendBackend([a, b], [3.0, 1.0], keep_lights=False)
-    out, ref, oa = (m.complete(rgb, normal, mask) for m in (blend, mean, a))
     seen, hole = mask > 0.5, mask < 0.5
+    oa = a.complete(rgb, normal, mask)
+    # the 3:1 mean's luminance in the first's colour
+    first = backends.BlendBackend([a, b], [3.0, 1.0], keep_lights=False, colour_weights=(1, 0))
+    mean = backends.BlendBackend([a, b], [3.0, 1.0], keep_lights=False)
+    out, ref = first.complete(rgb, normal, mask), mean.complete(rgb, normal, mask)
     for e in completion.DEFAULT_EVS:
         np.testing.assert_array_equal(out[e][seen], oa[e][seen])
-        r_out, r_ref, r_a = (hdr.unexpose(np.asarray(x[e], np.float64), e) for x in (out, ref, oa))
-        ok = hole & (r_out.max(-1) < 0.9 * 2.0 ** -e) & (r_a @ LUMA > 1e-6)    # none clipped
-        assert ok.sum() > 0.5 * hole.sum()
-        np.testing.assert_allclose((r_out @ LUMA)[ok], (r_ref @ LUMA)[ok], rtol=1e-3, atol=1e-5)
-        chroma = lambda r: r[ok] / (r[ok] @ LUMA)[:, None]             # noqa: E731
-        np.testing.assert_allclose(chroma(r_out), chroma(r_a), rtol=1e-3, atol=1e-4)
+    _colour_check(out, ref, oa, mask)
     assert not np.allclose(out[0.0][hole], ref[0.0][hole], atol=1e-3)   # it is not the mean
-    with pytest.raises(ValueError, match="chroma"):
-        backends.BlendBackend([a, b], chroma="sh")
-    assert backends.net_sh_blend(a, chroma="first").chroma == "first"
-    assert backends.net_sh_blend(a).chroma == backends.BLEND_CHROMA == "mean"
+    # outdoors (label colour weights): the first's luminance alone, the ½/½ mean's colour;
+    # both members run although the second has luminance weight 0
+    mix = backends.BlendBackend([a, b], keep_lights=False, label_weights={"outdoor": (1, 0)},
+                                label_colour_weights={"outdoor": (1, 1)})
+    half = backends.BlendBackend([a, b], keep_lights=False)
+    out = mix.complete(rgb, normal, mask, label="outdoor")
+    _colour_check(out, oa, half.complete(rgb, normal, mask, label="outdoor"), mask)
+    np.testing.assert_array_equal(mix.complete(rgb, normal, mask, label="indoor")[0.0],
+                                  half.complete(rgb, normal, mask, label="indoor")[0.0])
+    with pytest.raises(ValueError, match="colour"):
+        backends.BlendBackend([a, b], colour_weights=(0, 0))
+    with pytest.raises(ValueError, match="colour of label"):
+        backends.BlendBackend([a, b], label_colour_weights={"outdoor": (1.0,)})
+
+
+def test_net_sh_blend_colour_choices():
+    fill = backends.FillBackend("push_pull")
+    d = backends.net_sh_blend(fill)
+    np.testing.assert_array_equal(d.colour_weights_for("outdoor"), [0.5, 0.5])
+    assert d.colour_weights_for("indoor") is None and d.colour_weights_for("unknown") is None
+    assert backends.net_sh_blend(fill, "mean").colour_weights_for("outdoor") is None
+    f = backends.net_sh_blend(fill, "first")
+    for lab in ("outdoor", "indoor"):
+        np.testing.assert_array_equal(f.colour_weights_for(lab), [1.0, 0.0])
+    with pytest.raises(ValueError, match="colour"):
+        backends.net_sh_blend(fill, "sh")
 
 
 def test_blend_backend_rejects_bad_weights_and_inputs():

@@ -40,8 +40,8 @@ def _add_estimate_light(sub) -> None:
                    help=f"octahedral map side (default {d.oct_res})")
     p.add_argument("--backend", choices=("net+sh", "net", "mean", "push_pull", "sh", "diffusers"),
                    default="net+sh", help="completion backend (default net+sh: the shipped "
-                   "weights, their hole averaged with the SH fill, outdoors the weights alone; net: the "
-                   "weights alone)")
+                   "weights, their hole averaged with the SH fill, outdoors the weights' "
+                   "luminance in the average's colour; net: the weights alone)")
     p.add_argument("--weights", metavar="PATH", help="completion-net checkpoint (backend net)")
     p.add_argument("--net-resolution", type=int, nargs=2, metavar=("H", "W"),
                    help="network input size (default: the size the weights were trained at)")
