@@ -286,10 +286,11 @@ def test_blend_backend_keeps_the_first_where_seen_and_averages_radiance_in_the_h
     assert blend.name == "push_pull+sh"
 
 
-def _colour_check(out, ref_lum, ref_col, mask):
-    """In the hole of every bracket: luminance of ``ref_lum``, chromaticity of ``ref_col``."""
+def _colour_check(out, ref_lum, ref_col, mask, skip=None):
+    """In the hole of every bracket (but ``skip``): luminance of ``ref_lum``, chromaticity of
+    ``ref_col``."""
     from comgs_dr.core.colorspace import LUMA
-    hole = mask < 0.5
+    hole = (mask < 0.5) & (True if skip is None else ~skip)
     for e in completion.DEFAULT_EVS:
         r_out, r_l, r_c = (hdr.unexpose(np.asarray(x[e], np.float64), e)
                            for x in (out, ref_lum, ref_col))
@@ -328,6 +329,35 @@ def test_blend_backend_mixes_colour_apart_from_luminance():
         backends.BlendBackend([a, b], colour_weights=(0, 0))
     with pytest.raises(ValueError, match="colour of label"):
         backends.BlendBackend([a, b], label_colour_weights={"outdoor": (1.0,)})
+
+
+class _LampInHole(backends.FillBackend):
+    """A push-pull fill that puts a white lamp in the hole (8x the white at EV < 0)."""
+
+    def complete(self, rgb, normal, mask, evs=completion.DEFAULT_EVS, label=2):
+        out = super().complete(rgb, normal, mask, evs, label)
+        rad = hdr.unexpose(out[0.0], 0.0)
+        rad[10:12, 14:16] = 8.0
+        return {e: hdr.expose(rad, e).astype(np.float32) for e in out}
+
+
+def test_net_sh_blend_outdoors_keeps_the_nets_luminance_and_lights():
+    """Outdoors (the default colour): observed pixels and the net's lamp in the hole are the
+    net's in every bracket; elsewhere in the hole the net's luminance, the ½/½ mean's colour."""
+    rgb, normal, mask = _pano()
+    rgb = rgb * np.array([1.0, 0.7, 0.4])
+    net, sh = _LampInHole("push_pull"), backends.FillBackend("sh")
+    out = backends.net_sh_blend(net).complete(rgb, normal, mask, label="outdoor")
+    on = net.complete(rgb, normal, mask)
+    keep = (mask > 0.5) | (on[0.0].max(-1) >= 0.95)
+    assert keep[10:12, 14:16].all()
+    for e in completion.DEFAULT_EVS:
+        np.testing.assert_array_equal(out[e][keep], on[e][keep])
+    half = backends.BlendBackend([net, sh], keep_lights=False)
+    _colour_check(out, on, half.complete(rgb, normal, mask, label="outdoor"), mask, keep)
+    # the fused lamp keeps its power
+    np.testing.assert_allclose(hdr.fuse_brackets(out)[10:12, 14:16],
+                               hdr.fuse_brackets(on)[10:12, 14:16])
 
 
 def test_net_sh_blend_colour_choices():
