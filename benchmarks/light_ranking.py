@@ -115,12 +115,10 @@ def predictors() -> dict:
 
 
 def share_power(a: float):
-    """``lights.shared_power`` on benchmark rows: the head's total shared ∝ head^(1−a)·net^a."""
-    def f(regs):
-        p = np.array([r["head"] for r in regs])
-        w = np.maximum(p, 1e-30) ** (1 - a) * np.maximum([r["net"] for r in regs], 1e-30) ** a
-        return p.sum() * w / w.sum()
-    return f
+    """``lights.shared_power`` on benchmark rows (``lights.vote_shares``): the head's total
+    shared ∝ head^(1−a)·net^a."""
+    from comgs_dr.lighting.lights import vote_shares
+    return lambda regs: vote_shares([r["head"] for r in regs], [r["net"] for r in regs], a)
 
 
 def nested_choice(rows: list[dict], grid=NESTED_GRID, fixed=(0.0, 0.25)) -> dict:

@@ -62,8 +62,8 @@ from comgs_dr.lighting.sg import render_lobes, sg_integral, sg_sharpness
 
 __all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_regions",
            "FEATURES", "region_features", "LightHead", "HeadEnsemble", "save_head", "load_head",
-           "DEFAULT_HEAD", "predict_lobes", "downsample_clipped", "shared_power", "add_lights",
-           "describe_regions", "regions_overlay", "SAT", "TRUST_BRACKETS"]
+           "DEFAULT_HEAD", "predict_lobes", "downsample_clipped", "shared_power", "vote_shares",
+           "add_lights", "describe_regions", "regions_overlay", "SAT", "TRUST_BRACKETS"]
 
 SAT = 0.98                 # EV-0 max channel at/above which a pixel counts as clipped
 MAX_LOG_GAIN = 25.0       # P_true / P_seen ≤ e^25 ≈ 7e10 (a real sun at EV 0: ~1e5)
@@ -158,9 +158,9 @@ def region_features(ldr, mask, regions, label: int = 2, sat: float = SAT) -> np.
     floored at 1e-3°) is resolution-dependent and huge for a region of one to three pixels,
     whose centres barely leave the centroid: up to 2.5e6 (8 % of the training regions above
     100; the head standardises it by a std of 4.3e5, so it is near constant for the rest).
-    It stays because the shipped head was fitted with it. Measured on one training set (leave-one-real-map-out MAE of the log gain, fitting seeds
-    0 / 1): with it 0.741 / 0.793, zeroed 0.745 / 0.796, log-clipped to [1e-3, 1e3] 0.734 /
-    –: below the seeds' spread. A head refitted on fresh data with a bounded version (each
+    It stays because the shipped head was fitted with it. Measured on one training set
+    (leave-one-real-map-out MAE of the log gain, fitting seeds 0 / 1): with it 0.741 / 0.793,
+    zeroed 0.745 / 0.796, log-clipped to [1e-3, 1e3] 0.734 / –: below the seeds' spread. A head refitted on fresh data with a bounded version (each
     pixel's equal-area radius added to the cap; CV 0.766 / 0.795, zeroed 0.759 / 0.806) had
     held-out log power error 0.79 against the shipped head's 0.69 and top-1 0.660 against
     0.642 (``light_ranking``): not shipped."""
@@ -361,13 +361,23 @@ def shared_power(lobes, lum, dw, a: float) -> np.ndarray:
     (brackets 1.9× and 1.5× their EV-0 power) keeps 92 % and the patch gets 1.75×. With a
     fill backend P_map is the EV-0 power, so the vote leans to the larger clipped region.
     ValueError unless 0 ≤ a ≤ 1."""
+    pred = np.array([float(lb["luminance_power"]) for lb in lobes])           # [R]
+    if float(a) <= 0 or len(lobes) < 2:
+        return vote_shares(pred, pred, a)                 # validates a; pred unchanged
+    have = np.array([float((lum * dw * np.asarray(lb["region"], bool)).sum()) for lb in lobes])
+    return vote_shares(pred, have, a)
+
+
+def vote_shares(pred, have, a: float) -> np.ndarray:
+    """[R] Σ pred · w / Σ w, w = pred^(1−a) · have^a: the arithmetic of ``shared_power`` on
+    given powers (``benchmarks/light_ranking.py`` calls it on its rows). ValueError unless
+    0 ≤ a ≤ 1."""
     a_in, a = a, float(a)
     if not 0.0 <= a <= 1.0:
         raise ValueError(f"trust_brackets must lie in [0, 1], got {a_in!r}")
-    pred = np.array([float(lb["luminance_power"]) for lb in lobes])           # [R]
-    if a <= 0 or len(lobes) < 2:
+    pred = np.asarray(pred, np.float64)
+    if a <= 0 or len(pred) < 2:
         return pred
-    have = np.array([float((lum * dw * np.asarray(lb["region"], bool)).sum()) for lb in lobes])
     w = np.maximum(pred, 1e-30) ** (1.0 - a) * np.maximum(have, 1e-30) ** a
     return pred.sum() * w / w.sum()
 
