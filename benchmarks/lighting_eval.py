@@ -12,7 +12,9 @@ traced from procedural surfel scenes), with a random rotation about Z:
 * GT = k·map, k = ``pano_data.auto_exposure`` (the "capture" exposure);
 * input = ``hdr.expose(GT, 0)`` where alpha > 0 (un-premultiplied, as ``trace_panorama``
   returns it; holes 0) with alpha as the mask, the mask's normals, the map's label
-  (``--labels JSON``: {file stem: "indoor" | "outdoor"}, default "unknown");
+  (``--labels JSON``: {file stem: "indoor" | "outdoor" | "unknown" | "auto"}, other maps
+  ``--default-label``; "auto" classifies each input as ``estimate-light --label auto`` does,
+  ``lighting.scene_label``);
 * each method's ``complete(...)`` at EV (0, −2.5, −5), fused with ``hdr.fuse_brackets``.
 
     python benchmarks/lighting_eval.py --maps ../shared/data/hdri --held-out   # 5 unseen maps
@@ -96,7 +98,10 @@ def parse_args(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--draws", type=int, default=1, help="independent draws of masks and "
                     "rotations (seeds seed … seed+draws−1), pooled; each draw's wins printed")
-    ap.add_argument("--labels", default=None, help="JSON {file stem: indoor|outdoor}")
+    ap.add_argument("--labels", default=None, help="JSON {file stem: indoor|outdoor|unknown|auto}")
+    ap.add_argument("--default-label", default="unknown",
+                    choices=("unknown", "indoor", "outdoor", "auto"),
+                    help="label of the maps --labels does not name (auto: classified per input)")
     ap.add_argument("--held-out", action="store_true", help="only the maps of --maps named in "
                     "pano_data.HELD_OUT (never trained on), labelled by pano_data.label_of")
     ap.add_argument("--out", default="out/lighting_eval", help="folder for the PNG figure")
@@ -247,7 +252,7 @@ def light_metrics(est, gt, alpha, obj_est, obj_gt, obj_mask) -> dict:
 def evaluate(args, progress=print) -> dict:
     import comgs_dr
     from comgs_dr.eval import lighting_metrics as lm
-    from comgs_dr.lighting import completion, hdr
+    from comgs_dr.lighting import completion, hdr, scene_label
     comgs_dr.set_variant("llvm_ad_rgb")
     pano = importlib.import_module("comgs_dr.lighting.pano_data")
     labels = json.loads(Path(args.labels).read_text()) if args.labels else {}
@@ -269,9 +274,9 @@ def evaluate(args, progress=print) -> dict:
     records, examples, skipped, t_render = [], [], 0, []
     for mi_, path in enumerate(maps):
         gt_map = load_eval_map(path, h)
-        label = str(labels.get(path.stem, "unknown"))
-        if label not in completion.LABELS:
-            raise ValueError(f"--labels: {path.stem}: unknown label {label!r}")
+        label_req = str(labels.get(path.stem, args.default_label))
+        if label_req not in scene_label.LABEL_CHOICES:
+            raise ValueError(f"--labels: {path.stem}: unknown label {label_req!r}")
         for j in range(args.masks):
             mk = bank[mi_ * args.masks + j]
             cov = float(mk["coverage"])
@@ -286,6 +291,7 @@ def evaluate(args, progress=print) -> dict:
             normal = np.asarray(mk["normal"], np.float32)                         # [H, W, 3]
             # un-premultiplied colour where anything is seen, as trace_panorama gives it
             rgb = np.where(alpha[..., None] > 0, hdr.expose(gt, 0.0), 0.0).astype(np.float32)
+            label, p_out = scene_label.resolve_label(label_req, rgb, alpha)
             t1 = time.perf_counter()
             gt_r, smask = lm.render_spheres(gt, **sphere)
             obj_gt = 0.5 * (gt_r["diffuse"] + gt_r["matte_silver"])
@@ -311,7 +317,8 @@ def evaluate(args, progress=print) -> dict:
                 per = lm.sphere_metrics(est_r, gt_r, smask)
                 obj = 0.5 * (est_r["diffuse"] + est_r["matte_silver"])
                 records.append({"map": path.stem, "mask": j, "coverage": cov, "group": group,
-                                "label": label, "shift": shift, "method": name, "time_s": dt,
+                                "label": label, "label_requested": label_req,
+                                "p_outdoor": p_out, "shift": shift, "method": name, "time_s": dt,
                                 "pano_si_rmse": lm.si_rmse(est, gt), "materials": per,
                                 **{k: float(np.mean([per[m][k] for m in per]))
                                    for k, _ in METRICS},

@@ -133,8 +133,9 @@ def main(argv=None):
     ap.add_argument("--trace-res", type=int, default=512, help="trace height (width 2x; "
                     "512: estimate-light's default 1024x512)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--label", choices=("auto", "outdoor", "indoor", "unknown"), default="auto",
-                    help="estimate-light's scene label (auto: the map's, pano_data.label_of)")
+    ap.add_argument("--label", choices=("name", "auto", "outdoor", "indoor", "unknown"),
+                    default="name", help="estimate-light's scene label (name: the map's, "
+                    "pano_data.label_of; auto: classified from the trace, lighting.scene_label)")
     ap.add_argument("--truth", choices=("probe", "map"), default="probe", help="score against "
                     "the light path-traced at the placement in the scene (default) or the map")
     ap.add_argument("--weights", default=None, help="completion checkpoint (default: shipped)")
@@ -163,7 +164,7 @@ def main(argv=None):
         run, pos, scale = build_run(p, Path(a.out) / p.stem, a)
         t_build = time.perf_counter() - t0
         truth = true_light(p, Path(a.out) / p.stem, scale, a.truth)
-        label = pano_data.label_of(p.stem) if a.label == "auto" else a.label
+        label = pano_data.label_of(p.stem) if a.label == "name" else a.label
         for name, (kind, head) in methods.items():
             t0 = time.perf_counter()
             kw = {} if a.trust_brackets is None else {"light_trust_brackets": a.trust_brackets}
@@ -174,6 +175,9 @@ def main(argv=None):
             row = score(p.stem, name, r, truth, dt)
             rows.append(row)
             if name == "default":
+                if r["meta"].get("p_outdoor") is not None:
+                    print(f"<!-- {p.stem}: label auto -> {r['meta']['label']} "
+                          f"(p(outdoor) {r['meta']['p_outdoor']:.2f}) -->", flush=True)
                 rec = bgenv.load_clipped(run)
                 clip = None if rec is None else bgenv.splat_record(rec, *r["hdr"].shape[:2])
                 panels.append((p.stem, r["input"]["rgb"], clip, truth, r["hdr"],

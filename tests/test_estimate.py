@@ -123,6 +123,33 @@ def test_fill_backend_end_to_end_and_deterministic(params, result):
     assert np.array_equal(a["input"]["rgb"], result["input"]["rgb"])
 
 
+def test_auto_label_is_classified_and_passed_on(params, monkeypatch):
+    """label="auto": the classifier reads the backend's input, and its answer (not "auto")
+    reaches the completion and the meta."""
+    from comgs_dr.lighting import scene_label
+    seen = {}
+
+    class Spy(backends.FillBackend):
+        def complete(self, rgb, normal, mask, evs=None, label=2):
+            seen["label"] = label
+            return super().complete(rgb, normal, mask, evs=evs, label=label)
+
+    real = scene_label.classify
+    monkeypatch.setattr(scene_label, "classify",
+                        lambda ldr, mask, model=None: seen.setdefault("p", real(ldr, mask, model)))
+    r = estimate_light(_scene(params), POS, EstimateConfig(label="auto", light_head="none",
+                                                           **SMALL), Spy("mean"))
+    lab, p = seen["p"]
+    assert r["meta"]["label"] == lab and r["meta"]["label_requested"] == "auto"
+    assert r["meta"]["p_outdoor"] == pytest.approx(p) and 0.0 <= p <= 1.0
+    assert seen["label"] == completion.LABELS[lab] and r["timings"]["label"] >= 0.0
+    # the classifier saw exactly the backend's input
+    assert scene_label.classify(r["input"]["rgb"], r["input"]["mask"]) == (lab, p)
+    fixed = estimate_light(_scene(params), POS, EstimateConfig(label="indoor", light_head="none",
+                                                               **SMALL), Spy("mean"))
+    assert fixed["meta"]["p_outdoor"] is None and seen["label"] == completion.LABELS["indoor"]
+
+
 def test_light_trust_brackets_reaches_the_vote(params, monkeypatch):
     """EstimateConfig.light_trust_brackets is the value add_lights and describe_regions get."""
     from comgs_dr.lighting import lights
@@ -264,8 +291,13 @@ def test_cli_on_ply(params, tiny_weights, tmp_path, capsys):
     dom = doc["meta"]["light_dominance"]                   # one line when ≥ 2 regions
     assert (dom is None) == (len(lines) < 2)
     assert ("strongest observed clipped light" in text) == (dom is not None)
+    assert "label auto" not in text
     assert main(args + ["--backend", "sh"]) == 0
     assert "FillBackend(sh)" in capsys.readouterr().out
+    assert main(args + ["--backend", "sh", "--label", "auto"]) == 0      # the classifier's
+    text = capsys.readouterr().out                                        # answer is printed
+    doc = json.loads((tmp_path / "env.json").read_text())
+    assert f"label auto -> {doc['meta']['label']} (p(outdoor) " in text
     # errors -> exit code 2 with a message
     assert main(args + ["--weights", str(tmp_path / "none.pt")]) == 2
     assert "comgs train-completion" in capsys.readouterr().err

@@ -141,6 +141,14 @@ def test_held_out_selects_the_never_trained_maps(tmp_path, pano_data, variant, c
                          "--out", str(tmp_path / "fig"), "--examples", "0"])
     assert {r["map"] for r in out["records"]} == {HELD_OUT[0]}
     assert {r["label"] for r in out["records"]} == {"outdoor"}
+    # an unlabelled map takes --default-label; "auto" records the classifier's answer
+    from comgs_dr.lighting import scene_label
+    out = _bench().main(["--maps", str(maps), "--quick", "--light-head", "none",
+                         "--default-label", "auto", "--out", str(tmp_path / "fig"),
+                         "--examples", "0"])
+    for r in out["records"]:
+        assert r["label_requested"] == "auto" and 0.0 <= r["p_outdoor"] <= 1.0
+        assert r["label"] == scene_label.load_model().decide(r["p_outdoor"])
     (maps / f"{HELD_OUT[0]}.exr").unlink()
     with pytest.raises(FileNotFoundError, match="--held-out"):
         _bench().main(["--maps", str(maps), "--held-out", "--quick"])

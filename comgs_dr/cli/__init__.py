@@ -25,6 +25,7 @@ from comgs_dr.cli.lighting import (
     _add_estimate_light,
     _add_train_completion,
     _add_train_light_head,
+    _add_train_scene_label,
 )
 from comgs_dr.cli.objects import (
     _add_decompose,
@@ -38,7 +39,8 @@ from comgs_dr.train.interrupt import TrainingInterrupted
 
 _SUBCOMMANDS = (_add_make_dataset, _add_demo, _add_report, _add_reconstruct, _add_render,
                 _add_export_mesh, _add_decompose, _add_relight, _add_estimate_light, _add_compare_light,
-                _add_train_completion, _add_train_light_head, _add_compose, _add_render_comp)
+                _add_train_completion, _add_train_light_head, _add_train_scene_label,
+                _add_compose, _add_render_comp)
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(

@@ -1,5 +1,5 @@
 """The command line: ``comgs estimate-light``, ``compare-light``, ``train-completion``,
-``train-light-head``."""
+``train-light-head``, ``train-scene-label``."""
 from __future__ import annotations
 
 import json
@@ -12,7 +12,7 @@ from comgs_dr.core.config import add_config_arguments, config_overrides
 from comgs_dr.eval.lighting_metrics import compare_maps
 from comgs_dr.lighting import backends, envmap, lights
 from comgs_dr.lighting.hdr import area_resize_equirect
-from comgs_dr.stages import train_completion, train_light_head
+from comgs_dr.stages import train_completion, train_light_head, train_scene_label
 from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light, write_outputs
 
 # ----------------------------------------------------------------------------- estimate-light
@@ -28,7 +28,7 @@ def _add_estimate_light(sub) -> None:
     p.add_argument("--at", nargs=3, type=float, required=True, metavar=("X", "Y", "Z"),
                    help="object placement (world coordinates, Z-up)")
     p.add_argument("--out", required=True, metavar="ENV.exr", help="output equirect EXR")
-    p.add_argument("--label", choices=("unknown", "indoor", "outdoor"), default=d.label)
+    p.add_argument("--label", choices=("unknown", "indoor", "outdoor", "auto"), default=d.label)
     p.add_argument("--width", type=int, default=d.width, help=f"trace width (default {d.width})")
     p.add_argument("--height", type=int, default=d.height,
                    help=f"trace height (default {d.height})")
@@ -77,6 +77,8 @@ def _cmd_estimate_light(args) -> int:
     paths = write_outputs(r, args.out)
     print(f"coverage {100 * r['coverage']:.1f}%, backend {r['meta']['backend']}, "
           f"{len(r['lights'])} light(s), peak radiance {float(r['hdr'].max()):.3g}")
+    if r["meta"].get("p_outdoor") is not None:
+        print(f"label auto -> {r['meta']['label']} (p(outdoor) {r['meta']['p_outdoor']:.2f})")
     for i, g in enumerate(r.get("light_regions", [])):     # what the light head did
         el = float(np.degrees(np.arcsin(np.clip(g["direction"][2], -1.0, 1.0))))
         print(f"clipped region {i}: {g['solid_angle']:.4g} sr at elevation {el:+.1f}°, "
@@ -175,3 +177,19 @@ def _add_train_light_head(sub) -> None:
 def _cmd_train_light_head(args) -> int:
     set_variant("llvm_ad_rgb")
     return train_light_head.run_from_args(args)
+
+
+def _add_train_scene_label(sub) -> None:
+    p = sub.add_parser("train-scene-label", help="train the indoor/outdoor classifier "
+                       "(estimate-light --label auto)",
+                       description="Draw masked, re-exposed panoramas from the real maps minus "
+                                   "the held-out ones, sunsky skies and path-traced rooms, fit "
+                                   "the logistic classifier, and score it leaving each real map "
+                                   "out and on the held-out maps (about 2 minutes).")
+    train_scene_label.add_arguments(p)
+    p.set_defaults(func=_cmd_train_scene_label)
+
+
+def _cmd_train_scene_label(args) -> int:
+    set_variant("llvm_ad_rgb")
+    return train_scene_label.run_from_args(args)

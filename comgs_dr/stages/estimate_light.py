@@ -47,7 +47,7 @@ from PIL import Image, ImageDraw, ImageFont
 from comgs_dr.core import colorspace, runlog
 from comgs_dr.core.equirect import coverage, equirect_dir_to_uv_np, pixel_solid_angles
 from comgs_dr.data.images import to_u8
-from comgs_dr.lighting import envmap, hdr
+from comgs_dr.lighting import envmap, hdr, scene_label
 from comgs_dr.lighting import lights as light_head
 from comgs_dr.lighting.lights import TRUST_BRACKETS
 from comgs_dr.lighting.backends import default_backend
@@ -77,7 +77,8 @@ class EstimateConfig:
     height: int = 512
     max_hits: int = 32
     exclude_radius: float = 0.0
-    label: str = "unknown"
+    label: str = "unknown"          # "outdoor", "indoor", "unknown" or "auto" (classified
+                                    # from the trace: ``lighting.scene_label``)
     evs: tuple = (0.0, -2.5, -5.0)
     oct_res: int = 512
     net_resolution: tuple | None = None
@@ -97,9 +98,9 @@ class EstimateConfig:
                                     # up to this many background texels (inf: all, 0: none)
 
     def validate(self) -> None:
-        if self.label not in LABELS:
-            raise ValueError(f"EstimateConfig.label must be one of {sorted(LABELS)}, "
-                             f"got {self.label!r}")
+        if self.label not in scene_label.LABEL_CHOICES:
+            raise ValueError(f"EstimateConfig.label must be one of "
+                             f"{list(scene_label.LABEL_CHOICES)}, got {self.label!r}")
         evs = [float(e) for e in self.evs]
         if not evs or 0.0 not in evs or any(e > 0 or not np.isfinite(e) for e in evs) \
                 or len(set(evs)) != len(evs):
@@ -204,7 +205,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     backend, ``lights`` (``hdr.extract_lights``), ``coverage`` (solid-angle fraction),
     ``lobes`` (the light head's added lobes), ``light_regions`` (every clipped region the
     head read and what it did there, ``lights.describe_regions``),
-    ``timings`` {load, trace, completion, fusion, octahedral, lights, total} in seconds and ``meta``.
+    ``timings`` {load, trace, label, completion, fusion, light_head, octahedral, lights, total} in seconds and ``meta``.
     Errors: see the module docstring.
     """
     cfg = EstimateConfig() if cfg is None else cfg
@@ -249,8 +250,14 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
                     "range); the completion is mostly guessed", 100 * cov, 100 * LOW_COVERAGE)
 
     t = time.perf_counter()
+    label, p_outdoor = scene_label.resolve_label(cfg.label, rgb, mask)
+    if p_outdoor is not None:
+        log.info("estimate_light: label 'auto' -> %r (p(outdoor) = %.2f)", label, p_outdoor)
+    timings["label"] = time.perf_counter() - t
+
+    t = time.perf_counter()
     evs = tuple(float(e) for e in cfg.evs)
-    ldrs = backend.complete(rgb, normal, mask, evs=evs, label=LABELS[cfg.label])
+    ldrs = backend.complete(rgb, normal, mask, evs=evs, label=LABELS[label])
     timings["completion"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -267,7 +274,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     if head is not None:
         f = head_factor(trace, int(cfg.light_head_rows))
         pred = light_head.predict_lobes(*light_head.downsample_clipped(rgb, mask, f), head,
-                                        LABELS[cfg.label])
+                                        LABELS[label])
         for lb in pred:                                      # regions back at full size
             lb["region"] = np.repeat(np.repeat(lb["region"], f, 0), f, 1)
         before = radiance
@@ -285,7 +292,8 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     timings["lights"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
 
-    meta = {"source": source, "position": trace["meta"]["position"], "label": cfg.label,
+    meta = {"source": source, "position": trace["meta"]["position"], "label": label,
+            "label_requested": cfg.label, "p_outdoor": p_outdoor,
             "evs": list(evs), "backend": _backend_name(backend), "colour_space": space,
             "coverage": cov, "nonfinite_pixels": n_bad,
             "saturation_limit": hdr.saturation_limit(evs), "config": _jsonable(asdict(cfg)),
