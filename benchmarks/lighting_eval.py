@@ -13,8 +13,8 @@ traced from procedural surfel scenes), with a random rotation about Z:
 * input = ``hdr.expose(GT, 0)`` where alpha > 0 (un-premultiplied, as ``trace_panorama``
   returns it; holes 0) with alpha as the mask, the mask's normals, the map's label
   (``--labels JSON``: {file stem: "indoor" | "outdoor" | "unknown" | "auto"}, other maps
-  ``--default-label``; "auto" classifies each input as ``estimate-light --label auto`` does,
-  ``lighting.scene_label``);
+  ``--default-label``, default "auto": each input classified as ``estimate-light`` does by
+  default, ``lighting.scene_label``; ``--held-out`` labels its maps by name);
 * each method's ``complete(...)`` at EV (0, −2.5, −5), fused with ``hdr.fuse_brackets``.
 
     python benchmarks/lighting_eval.py --maps ../shared/data/hdri --held-out   # 5 unseen maps
@@ -99,7 +99,7 @@ def parse_args(argv=None):
     ap.add_argument("--draws", type=int, default=1, help="independent draws of masks and "
                     "rotations (seeds seed … seed+draws−1), pooled; each draw's wins printed")
     ap.add_argument("--labels", default=None, help="JSON {file stem: indoor|outdoor|unknown|auto}")
-    ap.add_argument("--default-label", default="unknown",
+    ap.add_argument("--default-label", default="auto",
                     choices=("unknown", "indoor", "outdoor", "auto"),
                     help="label of the maps --labels does not name (auto: classified per input)")
     ap.add_argument("--held-out", action="store_true", help="only the maps of --maps named in "

@@ -156,6 +156,9 @@ def main(argv=None):
     ap.add_argument("--weights", default=None, help="completion checkpoint (default: shipped)")
     ap.add_argument("--trust-brackets", type=float, default=None, help="EstimateConfig."
                     "light_trust_brackets (default: its default)")
+    ap.add_argument("--label", choices=("outdoor", "auto", "indoor", "unknown"),
+                    default="outdoor", help="estimate-light's scene label (auto: classified "
+                    "from the trace, lighting.scene_label)")
     ap.add_argument("--skies", type=int, default=0, help="also this many Mitsuba sunsky "
                     "skies (seeds never used in training; sun above 8°)")
     a = ap.parse_args(argv)
@@ -185,11 +188,14 @@ def main(argv=None):
         for name, (kind, head) in methods.items():
             t0 = time.perf_counter()
             kw = {} if a.trust_brackets is None else {"light_trust_brackets": a.trust_brackets}
-            cfg = EstimateConfig(width=2 * a.res, height=a.res, oct_res=32, label="outdoor",
+            cfg = EstimateConfig(width=2 * a.res, height=a.res, oct_res=32, label=a.label,
                                  light_head=head, **kw)
             r = estimate_light(scene, [0.0, 0.0, 1.0], cfg, be[kind])
             dt = time.perf_counter() - t0
             rows.append(score(stem, name, r, truth, dt))
+            if name == "default" and r["meta"].get("p_outdoor") is not None:
+                print(f"<!-- {stem}: label auto -> {r['meta']['label']} "
+                      f"(p(outdoor) {r['meta']['p_outdoor']:.2f}) -->", flush=True)
     print()
     print_summary(rows, methods)
     return rows

@@ -54,8 +54,13 @@ def test_unobserved_bands_and_bad_input():
     bad[3, 3, 0] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         S.label_features(bad, np.ones(hdr.shape[:2]))
-    with pytest.raises(ValueError, match="equirect"):
-        S.label_features(np.zeros((8, 8, 3)), np.ones((8, 8)))
+    with pytest.raises(ValueError, match="at least 2"):
+        S.label_features(np.zeros((1, 8, 3)), np.ones((1, 8)))
+    # any equirect size is read on the same 2:1 grid (a 3:1 trace, an odd height)
+    wide = S.label_features(_ldr(_pano(32)[:, np.arange(96) * 64 // 96]), np.ones((32, 96)))
+    np.testing.assert_allclose(wide, S.label_features(_ldr(_pano(32)), np.ones((32, 64))),
+                               atol=0.05)
+    assert np.isfinite(S.label_features(_ldr(_pano(32)[:31]), np.ones((31, 64)))).all()
 
 
 def test_features_at_trace_size_match_small_size():

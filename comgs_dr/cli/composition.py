@@ -38,8 +38,9 @@ def _add_compose(sub) -> None:
     p.add_argument("--preset", choices=sorted(COMPOSE_PRESETS), default="default",
                    help="default: 10k shadow probes per object (paper); fast: 2k")
     p.add_argument("--shadow-probes", type=int, metavar="N", help="shadow probes per object")
-    p.add_argument("--label", choices=("unknown", "indoor", "outdoor", "auto"), default="unknown",
-                   help="scene label for the lighting estimation")
+    p.add_argument("--label", choices=("auto", "unknown", "indoor", "outdoor"), default="auto",
+                   help="scene label for the lighting estimation (auto: classified from the "
+                   "traced panorama)")
     p.add_argument("--variant", default="auto")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_compose)

@@ -28,7 +28,8 @@ def _add_estimate_light(sub) -> None:
     p.add_argument("--at", nargs=3, type=float, required=True, metavar=("X", "Y", "Z"),
                    help="object placement (world coordinates, Z-up)")
     p.add_argument("--out", required=True, metavar="ENV.exr", help="output equirect EXR")
-    p.add_argument("--label", choices=("unknown", "indoor", "outdoor", "auto"), default=d.label)
+    p.add_argument("--label", choices=("auto", "unknown", "indoor", "outdoor"), default=d.label,
+                   help="scene label (default auto: classified from the traced panorama)")
     p.add_argument("--width", type=int, default=d.width, help=f"trace width (default {d.width})")
     p.add_argument("--height", type=int, default=d.height,
                    help=f"trace height (default {d.height})")

@@ -48,23 +48,24 @@ def _check(ldr, mask):
     if ldr.ndim != 3 or ldr.shape[-1] != 3 or mask.shape != ldr.shape[:2]:
         raise ValueError(f"scene_label: need an [H, W, 3] EV-0 panorama and an [H, W] mask, "
                          f"got {ldr.shape} and {mask.shape}")
-    if ldr.shape[1] != 2 * ldr.shape[0] or ldr.shape[0] < 2:
-        raise ValueError(f"scene_label: need an equirect panorama (W = 2H), got {ldr.shape}")
+    if ldr.shape[0] < 2 or ldr.shape[1] < 2:
+        raise ValueError(f"scene_label: need an equirect panorama of at least 2×2, got "
+                         f"{ldr.shape}")
     if not (np.isfinite(ldr).all() and np.isfinite(mask).all()):
         raise ValueError("scene_label: the panorama or the mask holds NaN/Inf values")
     return np.clip(ldr, 0.0, 1.0), (mask > 0.5).astype(np.float64)
 
 
 def _small(ldr, seen, rows: int):
-    """(linear rgb [rows, 2rows, 3], clipped fraction, observed fraction) area-averaged over
-    the observed pixels only (a hole does not darken its neighbours)."""
-    h = ldr.shape[0]
+    """(linear rgb [r, 2r, 3], clipped fraction, observed fraction), r = min(H, rows),
+    area-averaged over the observed pixels only (a hole does not darken its neighbours)."""
+    r = min(ldr.shape[0], rows)
     lin = srgb_decode(ldr)
     clip = (ldr.max(-1) >= SAT).astype(np.float64)
-    if h <= rows:
+    if ldr.shape[:2] == (r, 2 * r):
         return lin * seen[..., None], clip * seen, seen
     stack = np.concatenate([lin * seen[..., None], (clip * seen)[..., None], seen[..., None]], -1)
-    s = area_resize_equirect(stack.astype(np.float32), rows, 2 * rows).astype(np.float64)
+    s = area_resize_equirect(stack, r, 2 * r)
     a = s[..., 4]
     inv = np.where(a > 1e-6, 1.0 / np.maximum(a, 1e-6), 0.0)
     return s[..., :3] * inv[..., None], s[..., 3] * inv, a
@@ -72,7 +73,7 @@ def _small(ldr, seen, rows: int):
 
 def label_features(ldr, mask) -> np.ndarray:
     """[len(FEATURES)] float64 statistics of the observed EV-0 LDR panorama ``ldr`` [H, W, 3]
-    (display values, W = 2H; mask [H, W], 1 = observed). Brightness features are logs of band
+    (display values, equirect; mask [H, W], 1 = observed), read at ``ROWS`` × 2·``ROWS``. Brightness features are logs of band
     means over the whole observed mean (exposure-free); colour is a difference of band
     blueness (white-balance-free to first order). A band with nothing observed gives 0 for
     its relative features (``seen_*`` says so)."""

@@ -15,6 +15,10 @@ When the scene's step-1 run learned a sky behind its surfels (``--background env
 the trace where the surfels leave the view open and the capture saw the sky
 (``panorama.composite_background``), before completion.
 
+The scene label that conditions the completion and the light head (indoor / outdoor /
+unknown) is classified from the backend's input when ``EstimateConfig.label`` is "auto" (the
+default; ``lighting.scene_label``), and recorded in ``meta`` with p(outdoor).
+
 Input of the backend: the trace's EV-0 display values ``ldr`` clipped to [0, 1] for a
 radiance field fitted in sRGB (the usual case), or ``expose(rgb, 0)`` for a linear one,
 with ``alpha`` as the mask and ``normal``.
@@ -77,8 +81,9 @@ class EstimateConfig:
     height: int = 512
     max_hits: int = 32
     exclude_radius: float = 0.0
-    label: str = "unknown"          # "outdoor", "indoor", "unknown" or "auto" (classified
-                                    # from the trace: ``lighting.scene_label``)
+    label: str = "auto"             # "auto": classified from the trace (``lighting.
+                                    # scene_label``; README "The scene label"), or "outdoor",
+                                    # "indoor", "unknown"
     evs: tuple = (0.0, -2.5, -5.0)
     oct_res: int = 512
     net_resolution: tuple | None = None
