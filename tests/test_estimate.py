@@ -134,17 +134,28 @@ def test_auto_label_is_classified_and_passed_on(params, monkeypatch):
             seen["label"] = label
             return super().complete(rgb, normal, mask, evs=evs, label=label)
 
-    real = scene_label.classify
-    monkeypatch.setattr(scene_label, "classify",
-                        lambda ldr, mask, model=None: seen.setdefault("p", real(ldr, mask, model)))
-    r = estimate_light(_scene(params), POS, EstimateConfig(label="auto", light_head="none",
-                                                           **SMALL), Spy("mean"))
-    lab, p = seen["p"]
-    assert r["meta"]["label"] == lab and r["meta"]["label_requested"] == "auto"
-    assert r["meta"]["p_outdoor"] == pytest.approx(p) and 0.0 <= p <= 1.0
-    assert seen["label"] == completion.LABELS[lab] and r["timings"]["label"] >= 0.0
+    from comgs_dr.lighting import lights
+    real_classify, real_predict = scene_label.classify, lights.predict_lobes
+
+    def classify(ldr, mask, model=None):
+        seen["classified"] = (np.array(ldr), np.array(mask))
+        return "outdoor", 0.93                                  # forced: not the default
+
+    def predict(ldr, mask, head, label=2, **kw):
+        seen["head_label"] = label
+        return real_predict(ldr, mask, head, label, **kw)
+
+    monkeypatch.setattr(scene_label, "classify", classify)
+    monkeypatch.setattr(lights, "predict_lobes", predict)
+    r = estimate_light(_scene(params), POS, EstimateConfig(label="auto", **SMALL), Spy("mean"))
+    assert r["meta"]["label"] == "outdoor" and r["meta"]["label_requested"] == "auto"
+    assert r["meta"]["p_outdoor"] == pytest.approx(0.93) and r["timings"]["label"] >= 0.0
+    assert seen["label"] == seen["head_label"] == completion.LABELS["outdoor"]
     # the classifier saw exactly the backend's input
-    assert scene_label.classify(r["input"]["rgb"], r["input"]["mask"]) == (lab, p)
+    np.testing.assert_array_equal(seen["classified"][0], r["input"]["rgb"])
+    np.testing.assert_array_equal(seen["classified"][1], r["input"]["mask"])
+    lab, p = real_classify(r["input"]["rgb"], r["input"]["mask"])      # the real one runs
+    assert lab in ("outdoor", "indoor", "unknown") and 0.0 <= p <= 1.0
     fixed = estimate_light(_scene(params), POS, EstimateConfig(label="indoor", light_head="none",
                                                                **SMALL), Spy("mean"))
     assert fixed["meta"]["p_outdoor"] is None and seen["label"] == completion.LABELS["indoor"]
@@ -429,3 +440,34 @@ def test_head_factor_matches_the_capture_pixel():
     assert head_factor(trace(1024, 0.1), 256) == 2
     assert head_factor(trace(1024, 1.4), 256) == 4
     assert head_factor(trace(1024, None), 0) == 1                # 0: no limit
+
+
+def test_compose_cli_reports_each_placements_auto_label(monkeypatch, tmp_path, capsys):
+    """``comgs compose`` without --env: the estimator it hands to the stage runs
+    ``estimate_light`` with --label and prints the classifier's answer per placement."""
+    from comgs_dr.cli import composition as C
+    from comgs_dr.cli import main
+    calls = []
+
+    def fake_estimate(ply, pos, cfg, backend):
+        calls.append(cfg.label)
+        return {"hdr": np.ones((2, 4, 3), np.float32),
+                "meta": {"label": "indoor", "p_outdoor": 0.12 if cfg.label == "auto" else None}}
+
+    def fake_compose(scene_run, objects, placement, out, env, estimator, cfg, progress):
+        assert env is None and estimator([0.5, 0.25, 0.0]).shape == (2, 4, 3)
+        return {"timings": dict.fromkeys(("lighting", "probe_placement", "occlusion_tracing",
+                                          "total"), 0.0),
+                "probes": {"shadow": 0}, "pairs": {"traced": [], "reused": [], "culled": []}}
+
+    monkeypatch.setattr(C, "estimate_light", fake_estimate)
+    monkeypatch.setattr(C, "compose", fake_compose)
+    monkeypatch.setattr(C.backends, "default_backend", lambda **kw: None)
+    args = ["compose", str(tmp_path / "scene"), "--object", f"a={tmp_path / 'obj'}",
+            "--placement", str(tmp_path / "p.json"), "--out", str(tmp_path / "out"), "--quiet"]
+    assert main(args) == 0
+    assert calls == ["auto"]
+    assert "lighting at [0.5, 0.25, 0.0]: label auto -> indoor (p(outdoor) 0.12)" in \
+        capsys.readouterr().out
+    assert main(args + ["--label", "outdoor"]) == 0
+    assert calls[-1] == "outdoor" and "label auto" not in capsys.readouterr().out

@@ -4,6 +4,8 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import numpy as np
+
 from comgs_dr import set_variant
 from comgs_dr.lighting import backends
 from comgs_dr.stages.compose import PRESETS as COMPOSE_PRESETS
@@ -65,7 +67,13 @@ def _cmd_compose(args) -> int:
         scene_ply = str(Path(args.scene_run) / "point_cloud.ply")
         ecfg = EstimateConfig(label=args.label)
         backend = backends.default_backend()
-        estimator = lambda pos: estimate_light(scene_ply, pos, ecfg, backend)["hdr"]  # noqa: E731
+
+        def estimator(pos):
+            r = estimate_light(scene_ply, pos, ecfg, backend)
+            if r["meta"].get("p_outdoor") is not None:       # each placement is classified
+                print(f"lighting at {np.round(np.asarray(pos, float), 3).tolist()}: label "
+                      f"auto -> {r['meta']['label']} (p(outdoor) {r['meta']['p_outdoor']:.2f})")
+            return r["hdr"]
     s = compose(args.scene_run, objects, args.placement, args.out, env=args.env,
                 estimator=estimator, cfg=cfg, progress=not args.quiet)
     t = s["timings"]

@@ -186,7 +186,7 @@ def _add_train_scene_label(sub) -> None:
                        description="Draw masked, re-exposed panoramas from the real maps minus "
                                    "the held-out ones, sunsky skies and path-traced rooms, fit "
                                    "the logistic classifier, and score it leaving each real map "
-                                   "out and on the held-out maps (about 2 minutes).")
+                                   "out and on the held-out maps (about 3 minutes).")
     train_scene_label.add_arguments(p)
     p.set_defaults(func=_cmd_train_scene_label)
 

@@ -110,7 +110,9 @@ def label_features(ldr, mask) -> np.ndarray:
         return float((c * dw * sel).sum() / wgt) if wgt > 1e-9 else 0.0
 
     def tex(sel):
-        """Mean |Δ log lum| between observed neighbours (right and below) inside ``sel``."""
+        """Mean |Δ log lum| between neighbours (right and below) inside ``sel``, both more
+        than half observed (a ragged mask edge does not count as texture)."""
+        sel = sel & (a > 0.5)
         ll = np.log(lum + 1e-3)
         dx = np.abs(ll - np.roll(ll, -1, 1))
         ok_x = sel & np.roll(sel, -1, 1)
@@ -143,6 +145,7 @@ class LabelModel:
     info: dict | None = None
 
     def p_outdoor(self, x) -> np.ndarray:
+        """[N] p(outdoor) of features x [N, F] (or [F])."""
         x = np.atleast_2d(np.asarray(x, np.float64))
         z = ((x - np.asarray(self.mean)) / np.asarray(self.std)) @ np.asarray(self.coef)
         return 1.0 / (1.0 + np.exp(-np.clip(z + self.bias, -50.0, 50.0)))
@@ -155,18 +158,24 @@ class LabelModel:
         return "unknown"
 
 
-def fit_logistic(x, y, l2: float = 1.0, margin: float = 0.2) -> LabelModel:
-    """LabelModel fitted to features x [N, F] and y [N] (1 = outdoor) by Newton's method on
-    the mean log loss + (l2 / 2N)·|coef|² (standardised features; the bias is not
-    penalised). Hand-written (a dozen lines): scikit-learn is not a dependency."""
+def fit_logistic(x, y, l2: float = 1.0, margin: float = 0.2, w=None) -> LabelModel:
+    """LabelModel fitted to features x [N, F], y [N] (1 = outdoor) and sample weights w [N]
+    (None: 1) by Newton's method on the weighted mean log loss + (l2 / 2N)·|coef|²
+    (standardised features; the bias is not penalised). Hand-written (a dozen lines):
+    scikit-learn is not a dependency."""
     x = np.asarray(x, np.float64)
     y = np.asarray(y, np.float64)
-    if x.ndim != 2 or len(x) != len(y) or len(x) < 2:
-        raise ValueError(f"fit_logistic: need x [N, F] and y [N], N ≥ 2, got {x.shape}, "
-                         f"{y.shape}")
+    w = np.ones(len(y)) if w is None else np.asarray(w, np.float64)
+    if x.ndim != 2 or len(x) != len(y) or len(w) != len(y) or len(x) < 2:
+        raise ValueError(f"fit_logistic: need x [N, F], y [N], w [N], N ≥ 2, got {x.shape}, "
+                         f"{y.shape}, {w.shape}")
     if not ((y == 0) | (y == 1)).all() or y.min() == y.max():
         raise ValueError("fit_logistic: y must hold both classes, as 0 / 1")
-    mean, std = x.mean(0), np.maximum(x.std(0), 1e-6)
+    if not (np.isfinite(w).all() and (w >= 0).all() and w.sum() > 0) or not l2 > 0:
+        raise ValueError("fit_logistic: weights must be finite, ≥ 0, not all 0; l2 > 0")
+    w = w / w.mean()                                                                # [N]
+    mean = (w[:, None] * x).sum(0) / w.sum()                                        # [F]
+    std = np.maximum(np.sqrt((w[:, None] * (x - mean) ** 2).sum(0) / w.sum()), 1e-6)
     z = np.concatenate([(x - mean) / std, np.ones((len(x), 1))], 1)                # [N, F+1]
     n, f = z.shape
     reg = np.full(f, l2 / n)
@@ -174,12 +183,15 @@ def fit_logistic(x, y, l2: float = 1.0, margin: float = 0.2) -> LabelModel:
     beta = np.zeros(f)
     for _ in range(100):
         p = 1.0 / (1.0 + np.exp(-np.clip(z @ beta, -50, 50)))
-        g = z.T @ (p - y) / n + reg * beta
-        hess = (z * (p * (1 - p))[:, None]).T @ z / n + np.diag(reg) + 1e-9 * np.eye(f)
+        g = z.T @ (w * (p - y)) / n + reg * beta
+        hess = (z * (w * p * (1 - p))[:, None]).T @ z / n + np.diag(reg) + 1e-9 * np.eye(f)
         step = np.linalg.solve(hess, g)
         beta -= step
         if np.abs(step).max() < 1e-10:
             break
+    else:
+        raise ValueError("fit_logistic: Newton's method did not converge in 100 steps "
+                         "(separable data? raise l2)")
     return LabelModel(mean.tolist(), std.tolist(), beta[:-1].tolist(), float(beta[-1]), margin)
 
 

@@ -127,14 +127,12 @@ def sample_weights(y, group) -> np.ndarray:
 
 
 def fit(x, y, w, cfg: TrainSceneLabelConfig) -> S.LabelModel:
-    """Weighted fit: the draws are resampled in proportion to ``w`` (deterministic integer
-    repeats, ``fit_logistic`` being unweighted)."""
-    rep = np.maximum(np.round(w / w.min()).astype(int), 1) if len(w) else w
-    rep = np.minimum(rep, 50)
-    return S.fit_logistic(np.repeat(x, rep, 0), np.repeat(y, rep), cfg.l2, cfg.margin)
+    """The classifier fitted to x [N, F], y [N] with sample weights w [N]."""
+    return S.fit_logistic(x, y, cfg.l2, cfg.margin, w)
 
 
 def score(model: S.LabelModel, x, y) -> dict:
+    """Hard decisions of ``model`` on x [N, F] against y [N]: correct / unknown / wrong."""
     p = model.p_outdoor(x)
     dec = np.array([model.decide(v) for v in p])
     truth = np.where(y > 0.5, "outdoor", "indoor")
@@ -145,10 +143,12 @@ def score(model: S.LabelModel, x, y) -> dict:
 
 
 def cross_validate(d: dict, cfg: TrainSceneLabelConfig) -> list[dict]:
+    """Each real training map left out in turn: refit (weights rebalanced) and score it."""
     out = []
     for i, name in enumerate(d["names"]):
         te = d["group"] == i
-        m = fit(d["x"][~te], d["y"][~te], d["weight"][~te], cfg)
+        w = sample_weights(d["y"][~te], d["group"][~te])      # balanced without the map
+        m = fit(d["x"][~te], d["y"][~te], w, cfg)
         out.append({"left_out": name, **score(m, d["x"][te], d["y"][te])})
     return out
 
@@ -189,8 +189,8 @@ def add_arguments(ap) -> None:
 def run_from_args(args) -> int:
     if not 0.0 <= args.margin < 0.5:
         raise ValueError(f"--margin must lie in [0, 0.5), got {args.margin}")
-    if args.draws < 1 or args.skies < 0 or args.rooms < 0 or args.l2 < 0:
-        raise ValueError("--draws must be >= 1; --skies, --rooms, --l2 >= 0")
+    if args.draws < 1 or args.skies < 0 or args.rooms < 0 or not args.l2 > 0:
+        raise ValueError("--draws must be >= 1; --skies, --rooms >= 0; --l2 > 0")
     cfg = TrainSceneLabelConfig(out=args.out, maps_dir=args.maps, held_out=tuple(args.held_out),
                                 draws_real=args.draws, n_sky=args.skies, n_rooms=args.rooms,
                                 l2=args.l2, margin=args.margin, seed=args.seed)
