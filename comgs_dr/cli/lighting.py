@@ -151,46 +151,37 @@ def _cmd_compare_light(args) -> int:
 
 # ----------------------------------------------------------------------------- train-completion
 
+def _add_trainer(sub, name: str, module, help: str, description: str) -> None:
+    """A ``comgs train-*`` subcommand: ``module.add_arguments`` / ``module.run_from_args``,
+    on the CPU variant."""
+    p = sub.add_parser(name, help=help, description=description)
+    module.add_arguments(p)
+
+    def run(args) -> int:
+        set_variant("llvm_ad_rgb")
+        return module.run_from_args(args)
+    p.set_defaults(func=run)
+
+
 def _add_train_completion(sub) -> None:
-    p = sub.add_parser("train-completion", help="train the panorama completion network",
-                       description="Generate the training set (Poly Haven maps minus the "
-                                   "held-out ones, sunsky skies, path-traced rooms, traced "
-                                   "surfel masks) and train the EV-conditioned completion "
-                                   "network in two steps within --minutes.")
-    train_completion.add_arguments(p)
-    p.set_defaults(func=_cmd_train_completion)
-
-
-def _cmd_train_completion(args) -> int:
-    set_variant("llvm_ad_rgb")
-    return train_completion.run_from_args(args)
+    _add_trainer(sub, "train-completion", train_completion,
+                 "train the panorama completion network",
+                 "Generate the training set (Poly Haven maps minus the held-out ones, sunsky "
+                 "skies, path-traced rooms, traced surfel masks) and train the EV-conditioned "
+                 "completion network in two steps within --minutes.")
 
 
 def _add_train_light_head(sub) -> None:
-    p = sub.add_parser("train-light-head", help="train the light head (power of clipped lights)",
-                       description="Generate clipped-light regions from the real maps minus "
-                                   "the held-out ones, sunsky skies and path-traced rooms at "
-                                   "several sizes, and fit the light head (minutes).")
-    train_light_head.add_arguments(p)
-    p.set_defaults(func=_cmd_train_light_head)
-
-
-def _cmd_train_light_head(args) -> int:
-    set_variant("llvm_ad_rgb")
-    return train_light_head.run_from_args(args)
+    _add_trainer(sub, "train-light-head", train_light_head,
+                 "train the light head (power of clipped lights)",
+                 "Generate clipped-light regions from the real maps minus the held-out ones, "
+                 "sunsky skies and path-traced rooms at several sizes, and fit the light head "
+                 "(minutes).")
 
 
 def _add_train_scene_label(sub) -> None:
-    p = sub.add_parser("train-scene-label", help="train the indoor/outdoor classifier "
-                       "(estimate-light --label auto)",
-                       description="Draw masked, re-exposed panoramas from the real maps minus "
-                                   "the held-out ones, sunsky skies and path-traced rooms, fit "
-                                   "the logistic classifier, and score it leaving each real map "
-                                   "out and on the held-out maps (about 3 minutes).")
-    train_scene_label.add_arguments(p)
-    p.set_defaults(func=_cmd_train_scene_label)
-
-
-def _cmd_train_scene_label(args) -> int:
-    set_variant("llvm_ad_rgb")
-    return train_scene_label.run_from_args(args)
+    _add_trainer(sub, "train-scene-label", train_scene_label,
+                 "train the indoor/outdoor classifier (estimate-light --label auto)",
+                 "Draw masked, re-exposed panoramas from the real maps minus the held-out ones, "
+                 "sunsky skies and path-traced rooms, fit the logistic classifier, and score it "
+                 "leaving each real map out and on the held-out maps (about 3 minutes).")

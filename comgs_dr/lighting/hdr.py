@@ -50,7 +50,7 @@ from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
 __all__ = ["expose", "unexpose", "fuse_brackets",
            "DEFAULT_EVS", "saturation_limit",
            "label_equirect", "area_resize_equirect", "extract_lights", "real_sh_basis", "mean_fill",
-           "push_pull_fill", "sh_fill"]
+           "push_pull_fill", "sh_fill", "check_ldr_mask"]
 
 DEFAULT_EVS = (0.0, -2.5, -5.0)
 
@@ -250,6 +250,21 @@ def extract_lights(hdr_equirect, k: int = 3, threshold_quantile: float = 0.999,
 
 # ---------------------------------------------------------------------------------------
 # Baseline completions
+
+def check_ldr_mask(ldr, mask, who: str) -> tuple[np.ndarray, np.ndarray]:
+    """(ldr clipped to [0, 1] float64 [H, W, 3], observed bool [H, W]) from an EV-0 LDR
+    panorama and its mask ([H, W] or [H, W, 1], > ½ = observed); ValueError naming ``who``
+    for other shapes or NaN/Inf."""
+    ldr = np.asarray(ldr, np.float64)
+    mask = np.asarray(mask, np.float64)
+    mask = mask[..., 0] if mask.ndim == 3 else mask
+    if ldr.ndim != 3 or ldr.shape[-1] != 3 or mask.shape != ldr.shape[:2]:
+        raise ValueError(f"{who}: need an [H, W, 3] EV-0 panorama and an [H, W] mask, got "
+                         f"{ldr.shape} and {mask.shape}")
+    if not (np.isfinite(ldr).all() and np.isfinite(mask).all()):
+        raise ValueError(f"{who}: the panorama or the mask holds NaN/Inf values")
+    return np.clip(ldr, 0.0, 1.0), mask > 0.5
+
 
 def _check_fill(rgb, mask, name: str):
     """Validate inputs; returns (float64 image with holes zeroed, bool mask, out dtype)."""

@@ -57,7 +57,7 @@ import torch.nn as nn
 
 from comgs_dr.core.colorspace import LUMA, srgb_decode
 from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
-from comgs_dr.lighting.hdr import label_equirect
+from comgs_dr.lighting.hdr import check_ldr_mask, label_equirect
 from comgs_dr.lighting.sg import render_lobes, sg_integral, sg_sharpness
 
 __all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_regions",
@@ -91,15 +91,7 @@ def _unit(v):
 
 
 def _check(ldr, mask):
-    ldr = np.asarray(ldr, np.float64)
-    mask = np.asarray(mask, np.float64)
-    mask = mask[..., 0] if mask.ndim == 3 else mask
-    if ldr.ndim != 3 or ldr.shape[-1] != 3 or mask.shape != ldr.shape[:2]:
-        raise ValueError(f"lights: need an [H, W, 3] EV-0 panorama and an [H, W] mask, got "
-                         f"{ldr.shape} and {mask.shape}")
-    if not (np.isfinite(ldr).all() and np.isfinite(mask).all()):
-        raise ValueError("lights: the panorama or the mask holds NaN/Inf values")
-    return np.clip(ldr, 0.0, 1.0), mask > 0.5
+    return check_ldr_mask(ldr, mask, "lights")
 
 
 def clipped_regions(ldr, mask, sat: float = SAT, max_regions: int = MAX_REGIONS,

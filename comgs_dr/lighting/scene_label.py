@@ -25,7 +25,7 @@ import numpy as np
 
 from comgs_dr.core.colorspace import LUMA, srgb_decode
 from comgs_dr.core.equirect import pixel_solid_angles
-from comgs_dr.lighting.hdr import area_resize_equirect
+from comgs_dr.lighting.hdr import area_resize_equirect, check_ldr_mask
 
 __all__ = ["FEATURES", "label_features", "LabelModel", "fit_logistic", "load_model",
            "save_model", "classify", "resolve_label", "LABEL_CHOICES", "DEFAULT_MODEL", "SAT"]
@@ -42,18 +42,11 @@ FEATURES = ("rel_top", "rel_up", "rel_low", "blue_up_minus_low", "blue_top_minus
 
 
 def _check(ldr, mask):
-    ldr = np.asarray(ldr, np.float64)
-    mask = np.asarray(mask, np.float64)
-    mask = mask[..., 0] if mask.ndim == 3 else mask
-    if ldr.ndim != 3 or ldr.shape[-1] != 3 or mask.shape != ldr.shape[:2]:
-        raise ValueError(f"scene_label: need an [H, W, 3] EV-0 panorama and an [H, W] mask, "
-                         f"got {ldr.shape} and {mask.shape}")
+    ldr, seen = check_ldr_mask(ldr, mask, "scene_label")
     if ldr.shape[0] < 2 or ldr.shape[1] < 2:
         raise ValueError(f"scene_label: need an equirect panorama of at least 2×2, got "
                          f"{ldr.shape}")
-    if not (np.isfinite(ldr).all() and np.isfinite(mask).all()):
-        raise ValueError("scene_label: the panorama or the mask holds NaN/Inf values")
-    return np.clip(ldr, 0.0, 1.0), (mask > 0.5).astype(np.float64)
+    return ldr, seen.astype(np.float64)
 
 
 def _small(ldr, seen, rows: int):
