@@ -499,7 +499,11 @@ def preview_image(result: dict, panel_width: int = 512):
     gain), two per row, each at most ``panel_width`` wide."""
     inp = result["input"]
     mask = inp["mask"]
-    panels = [("traced input LDR (EV 0)", inp["rgb"]),
+    meta = result["meta"]
+    lab = meta.get("label", "?")
+    if meta.get("p_outdoor") is not None:
+        lab = f"{lab} (auto, p(outdoor) {meta['p_outdoor']:.2f})"
+    panels = [(f"traced input LDR (EV 0), label {lab}", inp["rgb"]),
               (f"mask (coverage {100 * result['coverage']:.1f}%)",
                np.repeat(mask[..., None], 3, -1)),
               ("normal (n/2 + 1/2)", np.where(mask[..., None] > 0, inp["normal"] * 0.5 + 0.5, 0))]
