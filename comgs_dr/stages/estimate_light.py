@@ -210,7 +210,8 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     backend, ``lights`` (``hdr.extract_lights``), ``coverage`` (solid-angle fraction),
     ``lobes`` (the light head's added lobes), ``light_regions`` (every clipped region the
     head read and what it did there, ``lights.describe_regions``),
-    ``timings`` {load, trace, label, completion, fusion, light_head, octahedral, lights, total} in seconds and ``meta``.
+    ``timings`` {load, trace, label, completion, fusion, light_head, octahedral, lights,
+    total} in seconds and ``meta``.
     Errors: see the module docstring.
     """
     cfg = EstimateConfig() if cfg is None else cfg

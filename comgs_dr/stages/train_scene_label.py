@@ -10,12 +10,11 @@ and each real map weighs as much as all skies (or all rooms) together.
 Validation is by map identity: each real map is left out in turn (the model refitted on the
 rest) and its draws scored; then the held-out maps (never used in fitting) are scored by
 the model fitted on everything. Reported: accuracy of the hard decision, the fraction
-answered "unknown", and the wrong answers. Seconds on 2 cores.
+answered "unknown", and the wrong answers. About a minute on 2 cores.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import asdict, dataclass
