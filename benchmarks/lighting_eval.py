@@ -414,6 +414,29 @@ def summarise(res: dict) -> dict:
             "n_clear": per_split[(me_ours, "all", "clear")]["n"] if me_ours else 0}
 
 
+def label_counts(records) -> dict:
+    """{map: {label: samples}} of the labels the models were given (one record per sample:
+    the first method's), for maps where any label was "auto"."""
+    out, first = {}, None
+    for r in records:
+        first = first or r["method"]
+        if r["method"] == first and r.get("label_requested") == "auto":
+            c = out.setdefault(r["map"], {})
+            c[r["label"]] = c.get(r["label"], 0) + 1
+    return out
+
+
+def print_label_table(records) -> None:
+    """What ``--label auto`` answered, per map (nothing when no label was auto)."""
+    counts = label_counts(records)
+    if not counts:
+        return
+    print("\n### Labels given by the classifier (`auto`, samples per map)\n\n"
+          "| map | outdoor | indoor | unknown |\n|---|---|---|---|")
+    for m, c in counts.items():
+        print(f"| {m} | {c.get('outdoor', 0)} | {c.get('indoor', 0)} | {c.get('unknown', 0)} |")
+
+
 def print_tables(res: dict, s: dict, args):
     methods, groups = res["methods"], [g for g, _, _ in GROUPS]
     print(f"\nmachine: {platform.machine()} {platform.processor() or ''}, {os.cpu_count()} "
@@ -548,6 +571,7 @@ def main(argv=None) -> dict:
                               f"best_baseline={sk['light_angle_visible_best_baseline']:.4g}")
     s = summarise(res)
     print_tables(res, s, args)
+    print_label_table(res["records"])
     fig = save_figure(res, Path(args.out) / "lighting_eval.png")
     if fig:
         print(f"\nfigure: {fig}")

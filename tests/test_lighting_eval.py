@@ -149,6 +149,10 @@ def test_held_out_selects_the_never_trained_maps(tmp_path, pano_data, variant, c
     for r in out["records"]:
         assert r["label_requested"] == "auto" and 0.0 <= r["p_outdoor"] <= 1.0
         assert r["label"] == scene_label.load_model().decide(r["p_outdoor"])
+    counts = _bench().label_counts(out["records"])        # one count per sample, per map
+    n = len({(r["map"], r["mask"], r["draw"]) for r in out["records"]})
+    assert sum(sum(c.values()) for c in counts.values()) == n
+    assert "### Labels given by the classifier" in capsys.readouterr().out
     (maps / f"{HELD_OUT[0]}.exr").unlink()
     with pytest.raises(FileNotFoundError, match="--held-out"):
         _bench().main(["--maps", str(maps), "--held-out", "--quick"])
