@@ -245,3 +245,20 @@ def test_train_completion_cli(tmp_path, capsys):
     assert C.load_weights(out).config.train_resolution == (16, 32)
     assert cli.main(argv + ["--res", "24"]) == 2                      # not a multiple of 16
     assert "multiple of 16" in capsys.readouterr().err
+
+
+def test_augmented_view_keeps_power_and_masks_the_ldr():
+    """Rotation and mirroring keep each row's power; with no exposure or white-balance jitter
+    the draw is k × the map; the LDR is 0 outside the (repeated) mask."""
+    from comgs_dr.core.colorspace import LUMA
+    from comgs_dr.lighting.hdr import expose
+    from comgs_dr.lighting.pano_data import augmented_view
+    rng = np.random.default_rng(0)
+    hdr = rng.random((16, 32, 3)) * np.linspace(0.1, 3.0, 16)[:, None, None]
+    masks = (rng.random((3, 8, 16)) > 0.4).astype(np.float32)
+    for seed in range(6):
+        m, a, ldr = augmented_view(np.random.default_rng(seed), hdr, 2.0, masks, 0.0, 0.0, 0.5)
+        np.testing.assert_allclose((m @ LUMA).sum(1), 2.0 * (hdr @ LUMA).sum(1), rtol=1e-12)
+        assert a.shape == (16, 32) and set(np.unique(a)) <= {0.0, 1.0}
+        assert np.all(ldr[a <= 0.5] == 0)
+        np.testing.assert_allclose(ldr[a > 0.5], expose(m, 0.0)[a > 0.5])

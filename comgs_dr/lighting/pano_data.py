@@ -32,11 +32,12 @@ from comgs_dr.core.equirect import (
 )
 from comgs_dr.core.hostarray import to_jit
 from comgs_dr.lighting.envmap import read_envmap_file
-from comgs_dr.lighting.hdr import area_resize_equirect
+from comgs_dr.lighting.hdr import area_resize_equirect, expose
 
 log = logging.getLogger(__name__)
 
-__all__ = ["HELD_OUT", "label_of", "auto_exposure", "load_map", "sunsky_panorama", "room_panorama", "rotate_u"]
+__all__ = ["HELD_OUT", "label_of", "auto_exposure", "load_map", "sunsky_panorama", "room_panorama",
+           "rotate_u", "augmented_view"]
 
 # evaluation maps of shared/data/hdri, never trained on: two Poly Haven maps and three of the
 # Blender maps (blender_sunrise, the only shared map with a clear sun, is also the end-to-end
@@ -84,6 +85,28 @@ def load_map(path, h: int, w: int) -> np.ndarray:
 def rotate_u(img: np.ndarray, shift: int) -> np.ndarray:
     """Rotation about +Z by ``shift`` pixels (a circular roll along u)."""
     return np.roll(img, int(shift), axis=1)
+
+
+def augmented_view(rng: np.random.Generator, hdr: np.ndarray, k: float, masks,
+                   aug_ev: float, wb_jitter: float, full_view: float):
+    """One training draw of an HDR panorama [h, w, 3] as a capture sees it: rotated about Z,
+    mirrored half the time, white-balanced (log-normal gains of σ ``wb_jitter``, luminance
+    kept), exposed by ``k`` × 2^U(−aug_ev, aug_ev), and observed fully (probability
+    ``full_view``) or through one of ``masks`` ([h', 2h'] alphas, pixel-repeated to h when
+    h' divides it, rotated). Returns (radiance [h, w, 3], alpha [h, w], EV-0 LDR [h, w, 3],
+    0 outside the mask). The light head's and the scene label's training share it."""
+    h, w = hdr.shape[:2]
+    m = rotate_u(hdr, rng.integers(w))
+    m = m[:, ::-1] if rng.random() < 0.5 else m
+    g = np.exp(rng.normal(0.0, wb_jitter, 3))
+    m = m * k * 2.0 ** rng.uniform(-aug_ev, aug_ev) * (g / (g @ LUMA))
+    if rng.random() < full_view:
+        a = np.ones((h, w))
+    else:
+        a = masks[rng.integers(len(masks))]
+        rep = max(h // a.shape[0], 1)
+        a = rotate_u(np.repeat(np.repeat(a, rep, 0), rep, 1)[:h, :w], rng.integers(w))
+    return m, a, np.where(a[..., None] > 0.5, expose(m, 0.0), 0.0)
 
 
 def _splat_direction(img: np.ndarray, d: np.ndarray, power: np.ndarray) -> None:

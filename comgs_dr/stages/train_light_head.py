@@ -42,7 +42,7 @@ from comgs_dr.data.synthetic import shared_data_dir
 from comgs_dr.lighting import completion as C
 from comgs_dr.lighting import lights as L
 from comgs_dr.lighting import pano_data as P
-from comgs_dr.lighting.hdr import area_resize_equirect, expose
+from comgs_dr.lighting.hdr import area_resize_equirect
 
 log = logging.getLogger(__name__)
 
@@ -95,17 +95,8 @@ def _draws(rng, hdr, masks, n, cfg, label, group, feats, targets, groups):
     dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
     k = P.auto_exposure(hdr)
     for _ in range(n):
-        m = P.rotate_u(hdr, rng.integers(w))
-        m = m[:, ::-1] if rng.random() < 0.5 else m
-        g = np.exp(rng.normal(0.0, cfg.wb_jitter, 3))
-        m = m * k * 2.0 ** rng.uniform(-cfg.aug_ev, cfg.aug_ev) * (g / (g @ LUMA))
-        if rng.random() < cfg.full_view:
-            a = np.ones((h, w))
-        else:
-            a = masks[rng.integers(len(masks))]
-            rep = h // a.shape[0]
-            a = P.rotate_u(np.repeat(np.repeat(a, rep, 0), rep, 1), rng.integers(w))
-        ldr = np.where(a[..., None] > 0.5, expose(m, 0.0), 0.0)
+        m, a, ldr = P.augmented_view(rng, hdr, k, masks, cfg.aug_ev, cfg.wb_jitter,
+                                     cfg.full_view)
         if rng.random() < cfg.blur_frac:
             ldr = blur_ldr(ldr, a, rng.uniform(*cfg.blur_deg) * h / 180.0)
         lab = label if rng.random() > 0.2 else C.LABELS["unknown"]

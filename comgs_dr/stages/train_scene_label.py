@@ -23,13 +23,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from comgs_dr.core.colorspace import LUMA
 from comgs_dr.core.variant import set_variant
 from comgs_dr.data import pano_masks
 from comgs_dr.data.synthetic import shared_data_dir
 from comgs_dr.lighting import pano_data as P
 from comgs_dr.lighting import scene_label as S
-from comgs_dr.lighting.hdr import expose
 
 OUTDOOR, INDOOR = 1, 0
 
@@ -55,19 +53,9 @@ class TrainSceneLabelConfig:
 
 def _draw(rng, hdr, masks, cfg) -> np.ndarray:
     """Features of one augmented, exposed, masked draw of an HDR panorama [h, w, 3]."""
-    h, w = hdr.shape[:2]
-    m = P.rotate_u(hdr, rng.integers(w))
-    m = m[:, ::-1] if rng.random() < 0.5 else m
-    g = np.exp(rng.normal(0.0, cfg.wb_jitter, 3))
-    m = m * P.auto_exposure(hdr) * 2.0 ** rng.uniform(-cfg.aug_ev, cfg.aug_ev) * (g / (g @ LUMA))
-    if rng.random() < cfg.full_view:
-        a = np.ones((h, w))
-    else:
-        a = masks[rng.integers(len(masks))]
-        rep = max(h // a.shape[0], 1)
-        a = np.repeat(np.repeat(a, rep, 0), rep, 1)[:h, :w]
-        a = P.rotate_u(a, rng.integers(w))
-    return S.label_features(np.where(a[..., None] > 0.5, expose(m, 0.0), 0.0), a)
+    _, a, ldr = P.augmented_view(rng, hdr, P.auto_exposure(hdr), masks, cfg.aug_ev,
+                                 cfg.wb_jitter, cfg.full_view)
+    return S.label_features(ldr, a)
 
 
 def build_data(cfg: TrainSceneLabelConfig, progress: bool = True) -> dict:
