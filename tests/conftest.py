@@ -1,4 +1,6 @@
+import atexit
 import os
+import shutil
 import tempfile
 
 import numpy as np
@@ -9,7 +11,9 @@ import comgs_dr
 # The notebooks (collected from notebooks/ by nbmake in the same run) execute at smoke-test
 # sizes into a temporary folder: their kernels inherit this environment.
 os.environ.setdefault("COMGS_NOTEBOOK_TINY", "1")
-os.environ.setdefault("COMGS_NOTEBOOK_OUT", tempfile.mkdtemp(prefix="comgs_notebooks_"))
+if "COMGS_NOTEBOOK_OUT" not in os.environ:     # ours: removed when the test process exits
+    os.environ["COMGS_NOTEBOOK_OUT"] = tempfile.mkdtemp(prefix="comgs_notebooks_")
+    atexit.register(shutil.rmtree, os.environ["COMGS_NOTEBOOK_OUT"], ignore_errors=True)
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 if os.environ.get("COMGS_GUARD_ALLOC") == "1":       # diagnostic: see tests/guard_alloc.py
