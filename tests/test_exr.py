@@ -77,6 +77,8 @@ def test_metadata_round_trip_and_envmap_layout(tmp_path):
         exr.write_image(tmp_path / "x.exr", np.ones((2, 2)), {"layout": 3})
     with pytest.raises(ValueError, match="non-reserved"):
         exr.write_image(tmp_path / "x.exr", np.ones((2, 2)), {"compression": "none"})
+    with pytest.raises(TypeError, match="use write_image"):      # an image, not channels
+        exr.write_exr(tmp_path / "x.exr", np.ones((2, 2, 3)))
     oct_map = np.random.default_rng(2).random((8, 8, 3)) + 0.1      # square: needs the metadata
     em.write_exr(tmp_path / "env.exr", oct_map, "octahedral")
     arr, layout = em.read_envmap_file(tmp_path / "env.exr")

@@ -38,7 +38,6 @@ Error policy:
 """
 from __future__ import annotations
 
-import json
 import logging
 import time
 from dataclasses import asdict, dataclass
@@ -46,16 +45,15 @@ from pathlib import Path
 
 import mitsuba as mi
 import numpy as np
-from PIL import Image, ImageDraw, ImageFont
 
-from comgs_dr.core import colorspace, runlog
-from comgs_dr.core.equirect import coverage, equirect_dir_to_uv_np, pixel_solid_angles
-from comgs_dr.data.images import to_u8
+from comgs_dr.core.equirect import coverage, pixel_solid_angles
 from comgs_dr.lighting import envmap, hdr, scene_label
 from comgs_dr.lighting import lights as light_head
 from comgs_dr.lighting.lights import TRUST_BRACKETS
 from comgs_dr.lighting.backends import default_backend
 from comgs_dr.lighting.completion import LABELS, CompletionBackend
+from comgs_dr.stages.estimate_light_files import (  # noqa: F401  (re-exported)
+    jsonable, output_paths, preview_image, write_outputs)
 from comgs_dr.surfels import load_ply, panorama
 from comgs_dr.surfels.panorama import PanoramaConfig
 from comgs_dr.surfels.shape import SurfelShapeBase
@@ -194,11 +192,6 @@ def _coverage(mask) -> float:
 # ---------------------------------------------------------------------------------------
 # The stage
 
-def _lights_json(lights) -> list[dict]:
-    return [{k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else v)
-             for k, v in l.items()} for l in lights]
-
-
 def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = None,
                    backend: CompletionBackend | None = None) -> dict:
     """HDR environment map at ``position`` of a surfel scene (Mitsuba scene or PLY path).
@@ -302,8 +295,8 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
             "label_requested": cfg.label, "p_outdoor": p_outdoor,
             "evs": list(evs), "backend": _backend_name(backend), "colour_space": space,
             "coverage": cov, "nonfinite_pixels": n_bad,
-            "saturation_limit": hdr.saturation_limit(evs), "config": _jsonable(asdict(cfg)),
-            "trace": _jsonable(trace["meta"]), "radiance": "linear",
+            "saturation_limit": hdr.saturation_limit(evs), "config": jsonable(asdict(cfg)),
+            "trace": jsonable(trace["meta"]), "radiance": "linear",
             "layout": {"hdr": "equirect", "oct": "octahedral"}}
     meta["light_head"] = None if head is None else str(cfg.light_head)
     meta["light_trust_brackets"] = None if head is None else float(cfg.light_trust_brackets)
@@ -442,99 +435,3 @@ def _load_head(spec: str):
 def _backend_name(backend) -> str:
     kind = getattr(backend, "kind", None) or getattr(backend, "name", None)
     return type(backend).__name__ + (f"({kind})" if kind else "")
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, np.generic):
-        return x.item()
-    return x
-
-
-# ---------------------------------------------------------------------------------------
-# Files
-
-def output_paths(out_path) -> dict:
-    """{'equirect': X.exr, 'oct': X_oct.exr, 'json': X.json, 'preview': X_preview.png,
-    'metrics': X.metrics.jsonl}."""
-    p = Path(out_path)
-    if p.suffix.lower() != ".exr":
-        raise ValueError(f"write_outputs: the output must be an .exr file, got {p}")
-    stem = p.with_suffix("")
-    return {"equirect": p, "oct": Path(f"{stem}_oct.exr"), "json": Path(f"{stem}.json"),
-            "preview": Path(f"{stem}_preview.png"), "metrics": Path(f"{stem}.{runlog.LOG_NAME}")}
-
-
-def write_outputs(result: dict, out_path) -> dict:
-    """Write the equirect HDR (``out_path``, EXR with layout metadata), the octahedral map
-    (``*_oct.exr``), ``*.json`` (meta, timings, lights, file names) and a labelled
-    ``*_preview.png``. Returns the paths (``output_paths``)."""
-    paths = output_paths(out_path)
-    envmap.write_exr(paths["equirect"], result["hdr"], "equirect")
-    envmap.write_exr(paths["oct"], result["oct"], "octahedral")
-    doc = {"meta": result["meta"], "timings": result["timings"],
-           "lights": _lights_json(result["lights"]),
-           "lobes": _lights_json(result.get("lobes", [])),
-           "light_head_regions": _lights_json([{k: v for k, v in g.items() if k != "region"}
-                                               for g in result.get("light_regions", [])]),
-           "files": {k: v.name for k, v in paths.items()}}
-    paths["json"].write_text(json.dumps(_jsonable(doc), indent=2))
-    runlog.rewrite(paths["metrics"].parent,
-                   runlog.part_records("estimate-light", result["timings"],
-                                       coverage=float(result["coverage"])),
-                   name=paths["metrics"].name)
-    preview_image(result).save(paths["preview"])
-    return paths
-
-
-def preview_image(result: dict, panel_width: int = 512):
-    """PIL image: labelled panels (input LDR, mask, normal, completion per EV, fused HDR
-    tone-mapped by ``colorspace.tonemap``: Reinhard on luminance, and, when the light head
-    ran, the clipped regions it read over the dimmed input: orange where it added power, cyan
-    where it reduced the brackets' excess, grey where it left them, each labelled with its
-    gain), two per row, each at most ``panel_width`` wide."""
-    inp = result["input"]
-    mask = inp["mask"]
-    meta = result["meta"]
-    lab = meta.get("label", "?")
-    if meta.get("p_outdoor") is not None:
-        lab = f"{lab} (auto, p(outdoor) {meta['p_outdoor']:.2f})"
-    panels = [(f"traced input LDR (EV 0), label {lab}", inp["rgb"]),
-              (f"mask (coverage {100 * result['coverage']:.1f}%)",
-               np.repeat(mask[..., None], 3, -1)),
-              ("normal (n/2 + 1/2)", np.where(mask[..., None] > 0, inp["normal"] * 0.5 + 0.5, 0))]
-    for ev in sorted(result["ldrs"], reverse=True):
-        panels.append((f"completion EV {ev:g}", result["ldrs"][ev]))
-    h = result["hdr"]
-    panels.append((f"fused HDR, Reinhard (max {float(h.max()):.3g})",
-                   colorspace.tonemap(h)))
-    regions, at = result.get("light_regions"), -1
-    if result["meta"].get("light_head") is not None and regions is not None:
-        n = {a: sum(g["action"] == a for g in regions) for a in ("added", "reduced")}
-        at = len(panels)
-        panels.append((f"light head: {len(regions)} clipped region(s); added "
-                       f"{n['added']} (orange), reduced {n['reduced']} (cyan)",
-                       light_head.regions_overlay(inp["rgb"], regions)))
-    font = ImageFont.load_default()
-    ih, iw = panels[0][1].shape[:2]
-    pw = min(panel_width, iw)
-    ph, bar, cols = max(1, round(ih * pw / iw)), 16, 2
-    rows = -(-len(panels) // cols)
-    sheet = Image.new("RGB", (cols * pw, rows * (ph + bar)), (32, 32, 32))
-    draw = ImageDraw.Draw(sheet)
-    for i, (title, img) in enumerate(panels):
-        x, y = (i % cols) * pw, (i // cols) * (ph + bar)
-        tile = Image.fromarray(to_u8(img)).resize((pw, ph), Image.BILINEAR)
-        sheet.paste(tile, (x, y + bar))
-        draw.text((x + 4, y + 2), title, fill=(255, 255, 255), font=font)
-        if i == at:                                            # gains at the regions
-            for g in regions:
-                u, v = equirect_dir_to_uv_np(np.asarray(g["direction"])[None])[0]
-                draw.text((x + min(int(u * pw), pw - 40), y + bar + min(int(v * ph), ph - 12)),
-                          f"x{g['gain']:.3g}", fill=(255, 255, 255), font=font)
-    return sheet

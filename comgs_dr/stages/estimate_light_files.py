@@ -1,0 +1,118 @@
+"""Files of the lighting-estimation stage: the equirect and octahedral EXRs, the JSON of
+meta, timings, lights and the light head's regions, and the labelled preview sheet
+(``estimate_light.estimate_light``'s result in, paths out)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+from comgs_dr.core import colorspace, runlog
+from comgs_dr.core.equirect import equirect_dir_to_uv_np
+from comgs_dr.data.images import to_u8
+from comgs_dr.lighting import envmap
+from comgs_dr.lighting import lights as light_head
+
+__all__ = ["output_paths", "write_outputs", "preview_image", "jsonable"]
+
+
+def jsonable(x):
+    """``x`` with numpy arrays and scalars turned into lists and Python numbers, keys into
+    strings (for ``json.dumps``)."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
+
+
+def _lights_json(lights) -> list[dict]:
+    return [{k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else v)
+             for k, v in l.items()} for l in lights]
+
+
+def output_paths(out_path) -> dict:
+    """{'equirect': X.exr, 'oct': X_oct.exr, 'json': X.json, 'preview': X_preview.png,
+    'metrics': X.metrics.jsonl}."""
+    p = Path(out_path)
+    if p.suffix.lower() != ".exr":
+        raise ValueError(f"write_outputs: the output must be an .exr file, got {p}")
+    stem = p.with_suffix("")
+    return {"equirect": p, "oct": Path(f"{stem}_oct.exr"), "json": Path(f"{stem}.json"),
+            "preview": Path(f"{stem}_preview.png"), "metrics": Path(f"{stem}.{runlog.LOG_NAME}")}
+
+
+def write_outputs(result: dict, out_path) -> dict:
+    """Write the equirect HDR (``out_path``, EXR with layout metadata), the octahedral map
+    (``*_oct.exr``), ``*.json`` (meta, timings, lights, file names) and a labelled
+    ``*_preview.png``. Returns the paths (``output_paths``)."""
+    paths = output_paths(out_path)
+    envmap.write_exr(paths["equirect"], result["hdr"], "equirect")
+    envmap.write_exr(paths["oct"], result["oct"], "octahedral")
+    doc = {"meta": result["meta"], "timings": result["timings"],
+           "lights": _lights_json(result["lights"]),
+           "lobes": _lights_json(result.get("lobes", [])),
+           "light_head_regions": _lights_json([{k: v for k, v in g.items() if k != "region"}
+                                               for g in result.get("light_regions", [])]),
+           "files": {k: v.name for k, v in paths.items()}}
+    paths["json"].write_text(json.dumps(jsonable(doc), indent=2))
+    runlog.rewrite(paths["metrics"].parent,
+                   runlog.part_records("estimate-light", result["timings"],
+                                       coverage=float(result["coverage"])),
+                   name=paths["metrics"].name)
+    preview_image(result).save(paths["preview"])
+    return paths
+
+
+def preview_image(result: dict, panel_width: int = 512):
+    """PIL image: labelled panels (input LDR, mask, normal, completion per EV, fused HDR
+    tone-mapped by ``colorspace.tonemap``: Reinhard on luminance, and, when the light head
+    ran, the clipped regions it read over the dimmed input: orange where it added power, cyan
+    where it reduced the brackets' excess, grey where it left them, each labelled with its
+    gain), two per row, each at most ``panel_width`` wide."""
+    inp = result["input"]
+    mask = inp["mask"]
+    meta = result["meta"]
+    lab = meta.get("label", "?")
+    if meta.get("p_outdoor") is not None:
+        lab = f"{lab} (auto, p(outdoor) {meta['p_outdoor']:.2f})"
+    panels = [(f"traced input LDR (EV 0), label {lab}", inp["rgb"]),
+              (f"mask (coverage {100 * result['coverage']:.1f}%)",
+               np.repeat(mask[..., None], 3, -1)),
+              ("normal (n/2 + 1/2)", np.where(mask[..., None] > 0, inp["normal"] * 0.5 + 0.5, 0))]
+    for ev in sorted(result["ldrs"], reverse=True):
+        panels.append((f"completion EV {ev:g}", result["ldrs"][ev]))
+    h = result["hdr"]
+    panels.append((f"fused HDR, Reinhard (max {float(h.max()):.3g})",
+                   colorspace.tonemap(h)))
+    regions, at = result.get("light_regions"), -1
+    if result["meta"].get("light_head") is not None and regions is not None:
+        n = {a: sum(g["action"] == a for g in regions) for a in ("added", "reduced")}
+        at = len(panels)
+        panels.append((f"light head: {len(regions)} clipped region(s); added "
+                       f"{n['added']} (orange), reduced {n['reduced']} (cyan)",
+                       light_head.regions_overlay(inp["rgb"], regions)))
+    font = ImageFont.load_default()
+    ih, iw = panels[0][1].shape[:2]
+    pw = min(panel_width, iw)
+    ph, bar, cols = max(1, round(ih * pw / iw)), 16, 2
+    rows = -(-len(panels) // cols)
+    sheet = Image.new("RGB", (cols * pw, rows * (ph + bar)), (32, 32, 32))
+    draw = ImageDraw.Draw(sheet)
+    for i, (title, img) in enumerate(panels):
+        x, y = (i % cols) * pw, (i // cols) * (ph + bar)
+        tile = Image.fromarray(to_u8(img)).resize((pw, ph), Image.BILINEAR)
+        sheet.paste(tile, (x, y + bar))
+        draw.text((x + 4, y + 2), title, fill=(255, 255, 255), font=font)
+        if i == at:                                            # gains at the regions
+            for g in regions:
+                u, v = equirect_dir_to_uv_np(np.asarray(g["direction"])[None])[0]
+                draw.text((x + min(int(u * pw), pw - 40), y + bar + min(int(v * ph), ph - 12)),
+                          f"x{g['gain']:.3g}", fill=(255, 255, 255), font=font)
+    return sheet
