@@ -49,8 +49,6 @@ GENERATOR_VERSION = 2      # bump when a generator's output changes (training-da
 KEY = 0.18
 
 
-
-
 def label_of(name: str) -> str:
     """'indoor' or 'outdoor' from a map's file stem (``INDOOR_HINTS``)."""
     return "indoor" if any(h in name.lower() for h in INDOOR_HINTS) else "outdoor"
@@ -186,20 +184,6 @@ def sunsky_panorama(rng: np.random.Generator, h: int = 64, w: int = 128) -> np.n
     if sun_power.max() > 0:
         _splat_direction(img, sd, sun_power)
     return img.astype(np.float32)
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 
 
 def interior_colour(rng: np.random.Generator, lo: float, hi: float, warm: float = 0.6) -> np.ndarray:
