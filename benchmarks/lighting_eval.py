@@ -142,6 +142,25 @@ def load_eval_map(path, res: int) -> np.ndarray:
     return area_resize_equirect(np.maximum(arr, 0.0), res, 2 * res)
 
 
+def load_eval_maps(paths, res: int) -> dict:
+    """{path: ``load_eval_map``} for every map; ValueError naming every map that cannot be
+    evaluated (unreadable, NaN/Inf, no equirect layout, all black), raised before the first
+    sample rather than minutes into the run at the first bad file."""
+    out, bad = {}, []
+    for p in paths:
+        try:
+            m = load_eval_map(p, res)
+            if not (m > 0).any():
+                raise ValueError("the map is black (no light to compare with)")
+            out[p] = m
+        except (ValueError, OSError) as e:
+            bad.append(f"{p.name}: {e}")
+    if bad:
+        raise ValueError(f"--maps: {len(bad)} of {len(paths)} maps cannot be evaluated (fix or "
+                         "move them):\n  " + "\n  ".join(bad))
+    return out
+
+
 def coverage_group(c: float):
     for name, lo, hi in GROUPS:
         if lo <= c < hi:
@@ -263,9 +282,10 @@ def evaluate(args, progress=print) -> dict:
         if not maps:
             raise FileNotFoundError(f"--held-out: none of {pano.HELD_OUT} in {args.maps}")
         labels = {p.stem: pano.label_of(p.stem) for p in maps} | labels
+    h, w = args.res, 2 * args.res
+    gt_maps = load_eval_maps(maps, h)              # every map checked before any work
     methods, head = make_methods(args.weights, args.light_head, args.diffusers,
                                  args.blend_colour)
-    h, w = args.res, 2 * args.res
     rng = np.random.default_rng(args.seed)
     sphere = dict(size=args.sphere_size, azimuths=lm.ARRAY_AZIMUTHS, quad_height=args.quad)
     t0 = time.perf_counter()
@@ -273,7 +293,7 @@ def evaluate(args, progress=print) -> dict:
     t_masks = time.perf_counter() - t0
     records, examples, skipped, t_render = [], [], 0, []
     for mi_, path in enumerate(maps):
-        gt_map = load_eval_map(path, h)
+        gt_map = gt_maps[path]
         label_req = str(labels.get(path.stem, args.default_label))
         if label_req not in scene_label.LABEL_CHOICES:
             raise ValueError(f"--labels: {path.stem}: unknown label {label_req!r}")

@@ -184,3 +184,25 @@ def test_draws_pool_independent_rotations_and_report_each(tmp_path, pano_data, v
     assert lines[-1].startswith("net_wins=") and lines[-2].startswith("light_angle_visible")
     with pytest.raises(SystemExit):
         _bench().main(common + ["--draws", "0"])
+
+
+def test_bad_maps_are_all_named_before_any_work(tmp_path, monkeypatch, variant):
+    """A folder with a good map, a black one, one with a NaN and an unreadable file: one
+    ValueError names the three bad ones, raised before the mask bank (no minutes lost)."""
+    from comgs_dr.lighting.envmap import write_exr
+    maps = tmp_path / "maps"
+    d = equirect_directions(16, 32)
+    sky = 0.2 + 0.8 * np.clip(d[..., 2:], 0, 1) * np.array([0.6, 0.8, 1.0])
+    write_exr(maps / "good.exr", sky, "equirect")
+    write_exr(maps / "black.exr", np.zeros((16, 32, 3)), "equirect")
+    bad = sky.copy()
+    bad[4, 4] = np.nan
+    write_exr(maps / "nan.exr", bad, "equirect")
+    (maps / "broken.hdr").write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 10 +X 20\n")
+    mod = importlib.import_module("comgs_dr.data.pano_masks")
+    monkeypatch.setattr(mod, "mask_bank", lambda *a, **k: pytest.fail("work before the check"))
+    with pytest.raises(ValueError, match=r"3 of 4 maps") as e:
+        _bench().main(["--maps", str(maps), "--quick", "--light-head", "none"])
+    msg = str(e.value)
+    assert all(n in msg for n in ("black.exr", "nan.exr", "broken.hdr"))
+    assert "good.exr" not in msg

@@ -69,6 +69,20 @@ def test_load_map_resizes_files_and_rejects_nan(tmp_path):
         P.load_map(tmp_path / "b.exr", 16, 32)
 
 
+def test_map_files_names_every_unusable_map(tmp_path):
+    img = np.full((16, 32, 3), 0.25, np.float32)
+    write_exr(tmp_path / "good.exr", img, "equirect")
+    write_exr(tmp_path / "held.exr", img, "equirect")
+    (tmp_path / "notes.txt").write_text("not a map")
+    assert [p.name for p in P.map_files(tmp_path, exclude=("held",))] == ["good.exr"]
+    write_exr(tmp_path / "black.exr", np.zeros_like(img), "equirect")
+    write_exr(tmp_path / "oct.exr", np.ones((8, 8, 3)), "octahedral")
+    (tmp_path / "cut.hdr").write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 4 +X 8\n")
+    with pytest.raises(ValueError, match="3 of 4 maps") as e:
+        P.map_files(tmp_path, exclude=("held",))
+    assert all(n in str(e.value) for n in ("black.exr", "oct.exr", "cut.hdr"))
+
+
 def test_rotate_u_round_trip():
     x = np.random.default_rng(1).random((4, 8, 3))
     np.testing.assert_array_equal(P.rotate_u(P.rotate_u(x, 3), -3), x)

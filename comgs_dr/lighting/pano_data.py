@@ -36,7 +36,7 @@ from comgs_dr.lighting.hdr import area_resize_equirect, expose
 
 log = logging.getLogger(__name__)
 
-__all__ = ["HELD_OUT", "label_of", "auto_exposure", "load_map", "sunsky_panorama", "room_panorama",
+__all__ = ["HELD_OUT", "label_of", "auto_exposure", "load_map", "map_files", "sunsky_panorama", "room_panorama",
            "rotate_u", "augmented_view"]
 
 # evaluation maps of shared/data/hdri, never trained on: two Poly Haven maps and three of the
@@ -78,6 +78,26 @@ def load_map(path, h: int, w: int) -> np.ndarray:
     if not np.all(np.isfinite(img)):
         raise ValueError(f"{path}: the map holds NaN/Inf values")
     return area_resize_equirect(np.maximum(img, 0.0), h, w).astype(np.float32)
+
+
+def map_files(folder, exclude=(), check_rows: int = 16) -> list:
+    """The .hdr/.exr maps of ``folder`` (sorted paths; stems in ``exclude`` left out), each
+    read once at ``check_rows`` rows so that a training run fails at once, naming every map
+    it cannot use (unreadable, not equirect, NaN/Inf, all black), not minutes into its data."""
+    from pathlib import Path
+    files = sorted(p for p in Path(folder).glob("*")
+                   if p.suffix.lower() in (".hdr", ".exr") and p.stem not in set(exclude))
+    bad = []
+    for p in files:
+        try:
+            if not (load_map(p, check_rows, 2 * check_rows) > 0).any():
+                raise ValueError("the map is black")
+        except (ValueError, OSError) as e:
+            bad.append(f"{p.name}: {e}")
+    if bad:
+        raise ValueError(f"{folder}: {len(bad)} of {len(files)} maps cannot be used (fix or "
+                         "move them):\n  " + "\n  ".join(bad))
+    return files
 
 
 def rotate_u(img: np.ndarray, shift: int) -> np.ndarray:

@@ -157,10 +157,7 @@ def build_data(cfg: TrainCompletionConfig, progress: bool = True) -> dict:
     h, w = cfg.height, cfg.width
     maps, labels, source, names = [], [], [], []
     mdir = Path(cfg.maps_dir) if cfg.maps_dir else shared_data_dir() / "hdri"
-    files = sorted(p for p in mdir.glob("*") if p.suffix.lower() in (".hdr", ".exr"))
-    for p in files:
-        if p.stem in cfg.held_out:
-            continue
+    for p in P.map_files(mdir, cfg.held_out):
         maps.append(P.load_map(p, h, w)), labels.append(C.LABELS[P.label_of(p.stem)])
         source.append(0), names.append(p.stem)
     if not maps:

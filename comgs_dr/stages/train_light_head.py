@@ -149,11 +149,10 @@ def build_data(cfg: TrainLightHeadConfig, progress: bool = True) -> dict:
             return d
     rng = np.random.default_rng(cfg.seed)
     t0 = time.perf_counter()
+    mdir = Path(cfg.maps_dir) if cfg.maps_dir else shared_data_dir() / "hdri"
+    files = P.map_files(mdir, cfg.held_out)
     masks = np.stack([m["alpha"] for m in pano_masks.mask_bank(
         cfg.n_masks, 64, 128, seed=cfg.seed + 1, progress=progress)]).astype(np.float32)
-    mdir = Path(cfg.maps_dir) if cfg.maps_dir else shared_data_dir() / "hdri"
-    files = sorted(p for p in mdir.glob("*") if p.suffix.lower() in (".hdr", ".exr")
-                   and p.stem not in cfg.held_out)
     rh = cfg.room_height
     rooms = [P.room_panorama(rng, rh, 2 * rh, spp=16, seed=cfg.seed * 7919 + i,
                              bulbs=cfg.room_bulbs)

@@ -62,10 +62,10 @@ def build_data(cfg: TrainSceneLabelConfig, progress: bool = True) -> dict:
     """x [N, F], y [N] (1 outdoor), weight [N], group [N] (real map index; −1 sky, −2 room),
     held-out x / y / group, names of the training and held-out maps."""
     rng = np.random.default_rng(cfg.seed)
+    mdir = Path(cfg.maps_dir) if cfg.maps_dir else shared_data_dir() / "hdri"
+    files = P.map_files(mdir)
     masks = [m["alpha"] for m in pano_masks.mask_bank(cfg.n_masks, 64, 128, seed=cfg.seed + 1,
                                                        progress=progress)]
-    mdir = Path(cfg.maps_dir) if cfg.maps_dir else shared_data_dir() / "hdri"
-    files = sorted(p for p in mdir.glob("*") if p.suffix.lower() in (".hdr", ".exr"))
     train = [p for p in files if p.stem not in cfg.held_out]
     held = [p for p in files if p.stem in cfg.held_out]
     if not train:
