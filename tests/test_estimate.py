@@ -205,6 +205,27 @@ def test_near_tie_of_clipped_lights_is_reported(params, monkeypatch, caplog):
         assert warned == ("is 1.20x the next" in caplog.text)
 
 
+def test_a_mostly_clipped_sky_is_reported(params, monkeypatch, caplog):
+    """meta records the clipped share of the seen sky, read from the backend's input; above
+    lights.CLIPPED_SKY_WARN a warning says the light inside cannot be read."""
+    from comgs_dr.lighting import lights
+    real, seen, forced = lights.clipped_sky_fraction, [], [0.0]
+
+    def spy(ldr, mask):
+        seen.append(real(ldr, mask))
+        return forced[0]
+    monkeypatch.setattr(lights, "clipped_sky_fraction", spy)
+    for v in (0.1, 0.6):
+        forced[0] = v
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="comgs_dr.stages.estimate_light"):
+            r = estimate_light(_scene(params), POS, EstimateConfig(**SMALL),
+                               backends.FillBackend("push_pull"))
+        assert r["meta"]["clipped_sky_fraction"] == v
+        assert ("of the observed sky is clipped" in caplog.text) == (v > lights.CLIPPED_SKY_WARN)
+        assert seen[-1] == real(r["input"]["rgb"], r["input"]["mask"])   # the backend's input
+
+
 def test_light_head_restores_clipped_power(params, tmp_path):
     """A head answering log gain 2.127 (softplus(2)): the clipped window's power is multiplied
     by e^2.127 exactly, the rest of the map is untouched, and env.json lists the lobe."""

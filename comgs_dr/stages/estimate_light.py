@@ -248,6 +248,13 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
         log.warning("estimate_light: coverage %.1f%% is below %.0f%% (the paper's tested "
                     "range); the completion is mostly guessed", 100 * cov, 100 * LOW_COVERAGE)
 
+    sky_clip = light_head.clipped_sky_fraction(rgb, mask)
+    if sky_clip > light_head.CLIPPED_SKY_WARN:
+        log.warning("estimate_light: %.0f%% of the observed sky is clipped at EV 0: where its "
+                    "light is and how strong cannot be read from one exposure (measured "
+                    "through step 1: E(sun)/E(up) off by 31-35%% above 30%%); a capture exposed "
+                    "for the sky avoids it", 100 * sky_clip)
+
     t = time.perf_counter()
     label, p_outdoor = scene_label.resolve_label(cfg.label, rgb, mask)
     if p_outdoor is not None:
@@ -294,7 +301,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     meta = {"source": source, "position": trace["meta"]["position"], "label": label,
             "label_requested": cfg.label, "p_outdoor": p_outdoor,
             "evs": list(evs), "backend": _backend_name(backend), "colour_space": space,
-            "coverage": cov, "nonfinite_pixels": n_bad,
+            "coverage": cov, "clipped_sky_fraction": sky_clip, "nonfinite_pixels": n_bad,
             "saturation_limit": hdr.saturation_limit(evs), "config": jsonable(asdict(cfg)),
             "trace": jsonable(trace["meta"]), "radiance": "linear",
             "layout": {"hdr": "equirect", "oct": "octahedral"}}
