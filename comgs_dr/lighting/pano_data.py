@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import colorsys
 import logging
+from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
@@ -36,8 +37,8 @@ from comgs_dr.lighting.hdr import area_resize_equirect, expose
 
 log = logging.getLogger(__name__)
 
-__all__ = ["HELD_OUT", "label_of", "auto_exposure", "load_map", "map_files", "sunsky_panorama", "room_panorama",
-           "rotate_u", "augmented_view"]
+__all__ = ["HELD_OUT", "label_of", "auto_exposure", "load_map", "map_files", "sunsky_panorama",
+           "room_panorama", "rotate_u", "augmented_view"]
 
 # evaluation maps of shared/data/hdri, never trained on: two Poly Haven maps and three of the
 # Blender maps (blender_sunrise, the only shared map with a clear sun, is also the end-to-end
@@ -84,7 +85,6 @@ def map_files(folder, exclude=(), check_rows: int = 16) -> list:
     """The .hdr/.exr maps of ``folder`` (sorted paths; stems in ``exclude`` left out), each
     read once at ``check_rows`` rows so that a training run fails at once, naming every map
     it cannot use (unreadable, not equirect, NaN/Inf, all black), not minutes into its data."""
-    from pathlib import Path
     files = sorted(p for p in Path(folder).glob("*")
                    if p.suffix.lower() in (".hdr", ".exr") and p.stem not in set(exclude))
     bad = []
