@@ -226,6 +226,27 @@ def test_a_mostly_clipped_sky_is_reported(params, monkeypatch, caplog):
         assert seen[-1] == real(r["input"]["rgb"], r["input"]["mask"])   # the backend's input
 
 
+def test_an_unseen_sky_is_reported(params, monkeypatch, caplog):
+    """meta records the seen share of the upper hemisphere, read from the backend's mask;
+    below lights.SEEN_SKY_WARN a warning says the lights above are guessed."""
+    from comgs_dr.lighting import lights
+    real, seen, forced = lights.seen_sky_fraction, [], [0.0]
+
+    def spy(mask):
+        seen.append(real(mask))
+        return forced[0]
+    monkeypatch.setattr(lights, "seen_sky_fraction", spy)
+    for v in (0.05, 0.7):
+        forced[0] = v
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="comgs_dr.stages.estimate_light"):
+            r = estimate_light(_scene(params), POS, EstimateConfig(**SMALL),
+                               backends.FillBackend("push_pull"))
+        assert r["meta"]["seen_sky_fraction"] == v
+        assert ("of the sky (or ceiling)" in caplog.text) == (v < lights.SEEN_SKY_WARN)
+        assert seen[-1] == real(r["input"]["mask"])
+
+
 def test_light_head_restores_clipped_power(params, tmp_path):
     """A head answering log gain 2.127 (softplus(2)): the clipped window's power is multiplied
     by e^2.127 exactly, the rest of the map is untouched, and env.json lists the lobe."""

@@ -248,6 +248,13 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
         log.warning("estimate_light: coverage %.1f%% is below %.0f%% (the paper's tested "
                     "range); the completion is mostly guessed", 100 * cov, 100 * LOW_COVERAGE)
 
+    sky_seen = light_head.seen_sky_fraction(mask)
+    if sky_seen < light_head.SEEN_SKY_WARN:
+        log.warning("estimate_light: the capture saw %.0f%% of the sky (or ceiling) above the "
+                    "placement: the lights up there are the completion's guess, not seen "
+                    "(measured through step 1 without sky views: E(sun)/E(up) 23-81%% low, the "
+                    "light 40-46 deg off); add views that see the sky, or give the map (compose --env)",
+                    100 * sky_seen)
     sky_clip = light_head.clipped_sky_fraction(rgb, mask)
     if sky_clip > light_head.CLIPPED_SKY_WARN:
         log.warning("estimate_light: %.0f%% of the observed sky is clipped at EV 0: where its "
@@ -301,7 +308,8 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     meta = {"source": source, "position": trace["meta"]["position"], "label": label,
             "label_requested": cfg.label, "p_outdoor": p_outdoor,
             "evs": list(evs), "backend": _backend_name(backend), "colour_space": space,
-            "coverage": cov, "clipped_sky_fraction": sky_clip, "nonfinite_pixels": n_bad,
+            "coverage": cov, "seen_sky_fraction": sky_seen,
+            "clipped_sky_fraction": sky_clip, "nonfinite_pixels": n_bad,
             "saturation_limit": hdr.saturation_limit(evs), "config": jsonable(asdict(cfg)),
             "trace": jsonable(trace["meta"]), "radiance": "linear",
             "layout": {"hdr": "equirect", "oct": "octahedral"}}

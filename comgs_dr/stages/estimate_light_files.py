@@ -83,7 +83,8 @@ def preview_image(result: dict, panel_width: int = 512):
     if meta.get("p_outdoor") is not None:
         lab = f"{lab} (auto, p(outdoor) {meta['p_outdoor']:.2f})"
     panels = [(f"traced input LDR (EV 0), label {lab}", inp["rgb"]),
-              (f"mask (coverage {100 * result['coverage']:.1f}%, sky clipped "
+              (f"mask (coverage {100 * result['coverage']:.1f}%, sky seen "
+               f"{100 * meta.get('seen_sky_fraction', 0.0):.0f}%, of it clipped "
                f"{100 * meta.get('clipped_sky_fraction', 0.0):.0f}%)",
                np.repeat(mask[..., None], 3, -1)),
               ("normal (n/2 + 1/2)", np.where(mask[..., None] > 0, inp["normal"] * 0.5 + 0.5, 0))]
