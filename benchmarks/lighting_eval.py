@@ -143,22 +143,10 @@ def load_eval_map(path, res: int) -> np.ndarray:
 
 
 def load_eval_maps(paths, res: int) -> dict:
-    """{path: ``load_eval_map``} for every map; ValueError naming every map that cannot be
-    evaluated (unreadable, NaN/Inf, no equirect layout, all black), raised before the first
-    sample rather than minutes into the run at the first bad file."""
-    out, bad = {}, []
-    for p in paths:
-        try:
-            m = load_eval_map(p, res)
-            if not (m > 0).any():
-                raise ValueError("the map is black (no light to compare with)")
-            out[p] = m
-        except (ValueError, OSError) as e:
-            bad.append(f"{p.name}: {e}")
-    if bad:
-        raise ValueError(f"--maps: {len(bad)} of {len(paths)} maps cannot be evaluated (fix or "
-                         "move them):\n  " + "\n  ".join(bad))
-    return out
+    """{path: ``load_eval_map``} for every map, checked before the first sample
+    (``pano_data.load_maps``: one ValueError naming every unusable map)."""
+    from comgs_dr.lighting.pano_data import load_maps
+    return load_maps(paths, lambda p: load_eval_map(p, res), "--maps")
 
 
 def coverage_group(c: float):

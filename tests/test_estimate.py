@@ -205,46 +205,36 @@ def test_near_tie_of_clipped_lights_is_reported(params, monkeypatch, caplog):
         assert warned == ("is 1.20x the next" in caplog.text)
 
 
-def test_a_mostly_clipped_sky_is_reported(params, monkeypatch, caplog):
-    """meta records the clipped share of the seen sky, read from the backend's input; above
-    lights.CLIPPED_SKY_WARN a warning says the light inside cannot be read."""
+@pytest.mark.parametrize("fn, key, values, text, warns", [
+    ("clipped_sky_fraction", "clipped_sky_fraction", (0.1, 0.6), "of the observed sky is clipped",
+     lambda v, L: v > L.CLIPPED_SKY_WARN),
+    ("seen_sky_fraction", "seen_sky_fraction", (0.05, 0.7), "of the sky (or ceiling)",
+     lambda v, L: v < L.SEEN_SKY_WARN)])
+def test_sky_checks_are_recorded_and_warned(params, monkeypatch, caplog, fn, key, values, text,
+                                            warns):
+    """meta records how much of the sky the capture saw and how much of that is clipped, both
+    read from the backend's input; past lights.SEEN_SKY_WARN / CLIPPED_SKY_WARN a warning says
+    the light up there cannot be read (forced values; the maths: tests/test_lights.py)."""
     from comgs_dr.lighting import lights
-    real, seen, forced = lights.clipped_sky_fraction, [], [0.0]
+    real, args_seen, forced = getattr(lights, fn), [], [0.0]
 
-    def spy(ldr, mask):
-        seen.append(real(ldr, mask))
+    def spy(*a):
+        args_seen.append(a)
         return forced[0]
-    monkeypatch.setattr(lights, "clipped_sky_fraction", spy)
-    for v in (0.1, 0.6):
+    monkeypatch.setattr(lights, fn, spy)
+    for v in values:
         forced[0] = v
         caplog.clear()
         with caplog.at_level("WARNING", logger="comgs_dr.stages.estimate_light"):
             r = estimate_light(_scene(params), POS, EstimateConfig(**SMALL),
                                backends.FillBackend("push_pull"))
-        assert r["meta"]["clipped_sky_fraction"] == v
-        assert ("of the observed sky is clipped" in caplog.text) == (v > lights.CLIPPED_SKY_WARN)
-        assert seen[-1] == real(r["input"]["rgb"], r["input"]["mask"])   # the backend's input
-
-
-def test_an_unseen_sky_is_reported(params, monkeypatch, caplog):
-    """meta records the seen share of the upper hemisphere, read from the backend's mask;
-    below lights.SEEN_SKY_WARN a warning says the lights above are guessed."""
-    from comgs_dr.lighting import lights
-    real, seen, forced = lights.seen_sky_fraction, [], [0.0]
-
-    def spy(mask):
-        seen.append(real(mask))
-        return forced[0]
-    monkeypatch.setattr(lights, "seen_sky_fraction", spy)
-    for v in (0.05, 0.7):
-        forced[0] = v
-        caplog.clear()
-        with caplog.at_level("WARNING", logger="comgs_dr.stages.estimate_light"):
-            r = estimate_light(_scene(params), POS, EstimateConfig(**SMALL),
-                               backends.FillBackend("push_pull"))
-        assert r["meta"]["seen_sky_fraction"] == v
-        assert ("of the sky (or ceiling)" in caplog.text) == (v < lights.SEEN_SKY_WARN)
-        assert seen[-1] == real(r["input"]["mask"])
+        assert r["meta"][key] == v
+        assert (text in caplog.text) == warns(v, lights)
+        inp = (r["input"]["rgb"], r["input"]["mask"])
+        expect = inp if fn == "clipped_sky_fraction" else inp[1:]
+        assert len(args_seen[-1]) == len(expect)
+        assert all(np.array_equal(a, b) for a, b in zip(args_seen[-1], expect))
+        assert real(*args_seen[-1]) >= 0.0
 
 
 def test_light_head_restores_clipped_power(params, tmp_path):

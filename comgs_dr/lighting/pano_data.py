@@ -37,8 +37,8 @@ from comgs_dr.lighting.hdr import area_resize_equirect, expose
 
 log = logging.getLogger(__name__)
 
-__all__ = ["HELD_OUT", "label_of", "auto_exposure", "load_map", "map_files", "sunsky_panorama",
-           "room_panorama", "rotate_u", "augmented_view"]
+__all__ = ["HELD_OUT", "label_of", "auto_exposure", "load_map", "load_maps", "map_files",
+           "sunsky_panorama", "room_panorama", "rotate_u", "augmented_view"]
 
 # evaluation maps of shared/data/hdri, never trained on: two Poly Haven maps and three of the
 # Blender maps (blender_sunrise, the only shared map with a clear sun, is also the end-to-end
@@ -81,22 +81,34 @@ def load_map(path, h: int, w: int) -> np.ndarray:
     return area_resize_equirect(np.maximum(img, 0.0), h, w).astype(np.float32)
 
 
+def load_maps(paths, load, who: str) -> dict:
+    """{path: load(path)} for every path, each checked (finite, not all black); one ValueError
+    naming every map that cannot be used (unreadable, wrong layout, NaN/Inf, black), so that a
+    run fails before its work, not minutes into it at the first bad file."""
+    out, bad = {}, []
+    for p in paths:
+        try:
+            m = np.asarray(load(p))
+            if not np.isfinite(m).all():
+                raise ValueError("the map holds NaN/Inf values")
+            if not (m > 0).any():
+                raise ValueError("the map is black (no light)")
+            out[p] = m
+        except (ValueError, OSError) as e:
+            bad.append(f"{Path(p).name}: {e}")
+    if bad:
+        raise ValueError(f"{who}: {len(bad)} of {len(paths)} maps cannot be used (fix or move "
+                         "them):\n  " + "\n  ".join(bad))
+    return out
+
+
 def map_files(folder, exclude=(), check_rows: int = 16) -> list:
     """The .hdr/.exr maps of ``folder`` (sorted paths; stems in ``exclude`` left out), each
-    read once at ``check_rows`` rows so that a training run fails at once, naming every map
-    it cannot use (unreadable, not equirect, NaN/Inf, all black), not minutes into its data."""
+    read once at ``check_rows`` rows by ``load_maps`` (a training run fails at once, naming
+    every map it cannot use)."""
     files = sorted(p for p in Path(folder).glob("*")
                    if p.suffix.lower() in (".hdr", ".exr") and p.stem not in set(exclude))
-    bad = []
-    for p in files:
-        try:
-            if not (load_map(p, check_rows, 2 * check_rows) > 0).any():
-                raise ValueError("the map is black")
-        except (ValueError, OSError) as e:
-            bad.append(f"{p.name}: {e}")
-    if bad:
-        raise ValueError(f"{folder}: {len(bad)} of {len(files)} maps cannot be used (fix or "
-                         "move them):\n  " + "\n  ".join(bad))
+    load_maps(files, lambda p: load_map(p, check_rows, 2 * check_rows), str(folder))
     return files
 
 
