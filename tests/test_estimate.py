@@ -205,36 +205,37 @@ def test_near_tie_of_clipped_lights_is_reported(params, monkeypatch, caplog):
         assert warned == ("is 1.20x the next" in caplog.text)
 
 
-@pytest.mark.parametrize("fn, key, values, text, warns", [
-    ("clipped_sky_fraction", "clipped_sky_fraction", (0.1, 0.6), "of the observed sky is clipped",
-     lambda v, L: v > L.CLIPPED_SKY_WARN),
-    ("seen_sky_fraction", "seen_sky_fraction", (0.05, 0.7), "of the sky (or ceiling)",
-     lambda v, L: v < L.SEEN_SKY_WARN)])
-def test_sky_checks_are_recorded_and_warned(params, monkeypatch, caplog, fn, key, values, text,
-                                            warns):
+@pytest.mark.parametrize("seen, clipped, warning", [
+    (0.7, 0.1, None), (0.7, 0.6, "of the observed sky is clipped"),
+    (0.05, 0.1, "of the sky (or ceiling)"), (0.05, 0.6, "of the sky (or ceiling)")])
+def test_sky_checks_are_recorded_and_warned(params, monkeypatch, caplog, seen, clipped, warning):
     """meta records how much of the sky the capture saw and how much of that is clipped, both
-    read from the backend's input; past lights.SEEN_SKY_WARN / CLIPPED_SKY_WARN a warning says
-    the light up there cannot be read (forced values; the maths: tests/test_lights.py)."""
+    read from the backend's input (forced values here; the maths: tests/test_lights.py). Below
+    SEEN_SKY_WARN one warning says the lights up there are guessed (and, with no learned sky,
+    how to keep one); else above CLIPPED_SKY_WARN one says the clipped light cannot be read.
+    The clipped share of a barely seen sky is not warned about."""
     from comgs_dr.lighting import lights
-    real, args_seen, forced = getattr(lights, fn), [], [0.0]
+    calls = {}
 
-    def spy(*a):
-        args_seen.append(a)
-        return forced[0]
-    monkeypatch.setattr(lights, fn, spy)
-    for v in values:
-        forced[0] = v
-        caplog.clear()
-        with caplog.at_level("WARNING", logger="comgs_dr.stages.estimate_light"):
-            r = estimate_light(_scene(params), POS, EstimateConfig(**SMALL),
-                               backends.FillBackend("push_pull"))
-        assert r["meta"][key] == v
-        assert (text in caplog.text) == warns(v, lights)
-        inp = (r["input"]["rgb"], r["input"]["mask"])
-        expect = inp if fn == "clipped_sky_fraction" else inp[1:]
-        assert len(args_seen[-1]) == len(expect)
-        assert all(np.array_equal(a, b) for a, b in zip(args_seen[-1], expect))
-        assert real(*args_seen[-1]) >= 0.0
+    def spy(name, value):
+        def f(*a):
+            calls[name] = a
+            return value
+        return f
+    monkeypatch.setattr(lights, "seen_sky_fraction", spy("seen", seen))
+    monkeypatch.setattr(lights, "clipped_sky_fraction", spy("clipped", clipped))
+    with caplog.at_level("WARNING", logger="comgs_dr.stages.estimate_light"):
+        r = estimate_light(_scene(params), POS, EstimateConfig(**SMALL),
+                           backends.FillBackend("push_pull"))
+    assert r["meta"]["seen_sky_fraction"] == seen
+    assert r["meta"]["clipped_sky_fraction"] == clipped
+    texts = ("of the observed sky is clipped", "of the sky (or ceiling)")
+    assert [t in caplog.text for t in texts] == [t == warning for t in texts]
+    if warning == texts[1]:
+        assert "--background env" in caplog.text             # the test scene has no sky
+    assert np.array_equal(calls["seen"][0], r["input"]["mask"])
+    assert np.array_equal(calls["clipped"][0], r["input"]["rgb"])
+    assert np.array_equal(calls["clipped"][1], r["input"]["mask"])
 
 
 def test_light_head_restores_clipped_power(params, tmp_path):

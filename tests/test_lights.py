@@ -92,6 +92,8 @@ def test_seen_sky_fraction_counts_the_observed_upper_hemisphere():
     assert L.seen_sky_fraction(np.ones((h, w, 1))) == pytest.approx(1.0)
     with pytest.raises(ValueError, match="finite"):
         L.seen_sky_fraction(np.full((h, w), np.nan))
+    with pytest.raises(ValueError, match=r"\[H, W, 1\]"):
+        L.seen_sky_fraction(np.ones((h, w, 3)))                   # an image, not a mask
 
 
 def test_clipped_region_across_the_seam_is_one():

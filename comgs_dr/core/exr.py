@@ -73,7 +73,7 @@ def write_exr(path, channels: dict, attrs: dict | None = None,
         raise ValueError(f"{p}: pixel_type must be 'float' or 'half', got {pixel_type!r}")
     if not isinstance(channels, dict):
         raise TypeError(f"{p}: write_exr takes {{channel name: [H, W] array}}; for an "
-                        f"[H, W, C] image use write_image")
+                        "[H, W, C] image use write_image")
     if not channels:
         raise ValueError(f"{p}: no channels to write")
     shape, chans = None, {}

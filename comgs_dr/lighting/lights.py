@@ -129,9 +129,10 @@ def seen_sky_fraction(mask) -> float:
     0.03 and E(sun)/E(up) came out −81 % (`blender_sunrise`), −57 % (`venice_sunset`) and
     −23 % (`blender_city`), the light 40–46° off; with the 12 sky views it was 0.70–0.73."""
     m = np.asarray(mask, np.float64)
-    m = m[..., 0] if m.ndim == 3 else m
+    m = m[..., 0] if m.ndim == 3 and m.shape[-1] == 1 else m
     if m.ndim != 2 or not np.isfinite(m).all():
-        raise ValueError(f"seen_sky_fraction: need a finite [H, W] mask, got shape {m.shape}")
+        raise ValueError(f"seen_sky_fraction: need a finite [H, W] or [H, W, 1] mask, got "
+                         f"shape {np.shape(mask)}")
     h, w = m.shape
     up = np.broadcast_to(equirect_directions(h, w)[..., 2] > 0, (h, w))
     dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))

@@ -249,18 +249,23 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
                     "range); the completion is mostly guessed", 100 * cov, 100 * LOW_COVERAGE)
 
     sky_seen = light_head.seen_sky_fraction(mask)
-    if sky_seen < light_head.SEEN_SKY_WARN:
-        log.warning("estimate_light: the capture saw %.0f%% of the sky (or ceiling) above the "
-                    "placement: the lights up there are the completion's guess, not seen "
-                    "(measured through step 1 without sky views: E(sun)/E(up) 23-81%% low, the "
-                    "light 40-46 deg off); add views that see the sky, or give the map (compose --env)",
-                    100 * sky_seen)
     sky_clip = light_head.clipped_sky_fraction(rgb, mask)
-    if sky_clip > light_head.CLIPPED_SKY_WARN:
-        log.warning("estimate_light: %.0f%% of the observed sky is clipped at EV 0: where its "
-                    "light is and how strong cannot be read from one exposure (measured "
-                    "through step 1: E(sun)/E(up) off by 31-35%% above 30%%); a capture exposed "
-                    "for the sky avoids it", 100 * sky_clip)
+    if sky_seen < light_head.SEEN_SKY_WARN:
+        fix = ("add views that see the sky, or give the map (compose --env)" if bg_dir is not None
+               else "if the capture saw the sky, reconstruct with --background env (step 1 "
+               "keeps no sky without it); else add sky views or give the map (compose --env)")
+        log.warning("estimate_light: the capture saw %.1f%% of the sky (or ceiling) above the "
+                    "placement (warned below %.0f%%): the lights up there are the completion's "
+                    "guess (measured through step 1 without sky views: E(sun)/E(up) 23-81%% "
+                    "low, the light 40-46 deg off); %s", 100 * sky_seen,
+                    100 * light_head.SEEN_SKY_WARN, fix)
+    elif sky_clip > light_head.CLIPPED_SKY_WARN:
+        log.warning("estimate_light: %.1f%% of the observed sky is clipped at EV 0 (warned "
+                    "above %.0f%%): its light's power, and where in it the light is, cannot be "
+                    "read from one exposure (measured through step 1: E(sun)/E(up) off by "
+                    "31-35%% there); a "
+                    "capture exposed for the sky avoids it", 100 * sky_clip,
+                    100 * light_head.CLIPPED_SKY_WARN)
 
     t = time.perf_counter()
     label, p_outdoor = scene_label.resolve_label(cfg.label, rgb, mask)

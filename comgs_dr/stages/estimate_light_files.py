@@ -70,6 +70,14 @@ def write_outputs(result: dict, out_path) -> dict:
     return paths
 
 
+def _sky_text(meta: dict) -> str:
+    """", sky seen X%, of it clipped Y%" when the meta holds them, else ""."""
+    if meta.get("seen_sky_fraction") is None or meta.get("clipped_sky_fraction") is None:
+        return ""
+    return (f", sky seen {100 * meta['seen_sky_fraction']:.0f}%, of it clipped "
+            f"{100 * meta['clipped_sky_fraction']:.0f}%")
+
+
 def preview_image(result: dict, panel_width: int = 512):
     """PIL image: labelled panels (input LDR, mask, normal, completion per EV, fused HDR
     tone-mapped by ``colorspace.tonemap``: Reinhard on luminance, and, when the light head
@@ -83,9 +91,7 @@ def preview_image(result: dict, panel_width: int = 512):
     if meta.get("p_outdoor") is not None:
         lab = f"{lab} (auto, p(outdoor) {meta['p_outdoor']:.2f})"
     panels = [(f"traced input LDR (EV 0), label {lab}", inp["rgb"]),
-              (f"mask (coverage {100 * result['coverage']:.1f}%, sky seen "
-               f"{100 * meta.get('seen_sky_fraction', 0.0):.0f}%, of it clipped "
-               f"{100 * meta.get('clipped_sky_fraction', 0.0):.0f}%)",
+              (f"mask (coverage {100 * result['coverage']:.1f}%{_sky_text(meta)})",
                np.repeat(mask[..., None], 3, -1)),
               ("normal (n/2 + 1/2)", np.where(mask[..., None] > 0, inp["normal"] * 0.5 + 0.5, 0))]
     for ev in sorted(result["ldrs"], reverse=True):
