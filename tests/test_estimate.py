@@ -210,11 +210,11 @@ def test_near_tie_of_clipped_lights_is_reported(params, monkeypatch, caplog):
     (0.05, 0.1, "of the sky (or ceiling)"), (0.05, 0.6, "of the sky (or ceiling)")])
 def test_sky_checks_are_recorded_and_warned(params, monkeypatch, caplog, seen, clipped, warning):
     """meta records how much of the sky the capture saw and how much of that is clipped, both
-    read from the backend's input (forced values here; the maths: tests/test_lights.py). Below
+    read from the backend's input (forced values here; the maths: tests/test_hdr.py). Below
     SEEN_SKY_WARN one warning says the lights up there are guessed (and, with no learned sky,
     how to keep one); else above CLIPPED_SKY_WARN one says the clipped light cannot be read.
     The clipped share of a barely seen sky is not warned about."""
-    from comgs_dr.lighting import lights
+    from comgs_dr.lighting import hdr
     calls = {}
 
     def spy(name, value):
@@ -222,8 +222,8 @@ def test_sky_checks_are_recorded_and_warned(params, monkeypatch, caplog, seen, c
             calls[name] = a
             return value
         return f
-    monkeypatch.setattr(lights, "seen_sky_fraction", spy("seen", seen))
-    monkeypatch.setattr(lights, "clipped_sky_fraction", spy("clipped", clipped))
+    monkeypatch.setattr(hdr, "seen_sky_fraction", spy("seen", seen))
+    monkeypatch.setattr(hdr, "clipped_sky_fraction", spy("clipped", clipped))
     with caplog.at_level("WARNING", logger="comgs_dr.stages.estimate_light"):
         r = estimate_light(_scene(params), POS, EstimateConfig(**SMALL),
                            backends.FillBackend("push_pull"))

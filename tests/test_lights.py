@@ -62,40 +62,6 @@ def test_clipped_regions_find_the_sun_and_ignore_unobserved_pixels():
     assert L.clipped_regions(ldr, hole) == []
 
 
-def test_clipped_sky_fraction_is_the_clipped_share_of_the_seen_sky():
-    """Clipped above 30° elevation (half the upper hemisphere's solid angle) -> ½; unobserved
-    or below-horizon clipping does not count; no sky seen -> 0."""
-    h, w = 90, 180
-    el = np.degrees(np.arcsin(equirect_directions(h, w)[..., 2]))                   # [h, w]
-    ldr = np.full((h, w, 3), 0.4)
-    ldr[el > 30.0] = 1.0
-    mask = np.ones((h, w))
-    assert L.clipped_sky_fraction(ldr, mask) == pytest.approx(0.5, abs=0.02)
-    ldr[el < -30.0] = 1.0                                     # a blown-out floor: not sky
-    assert L.clipped_sky_fraction(ldr, mask) == pytest.approx(0.5, abs=0.02)
-    mask[el > 30.0] = 0.0                                     # the clipped part unobserved
-    assert L.clipped_sky_fraction(ldr, mask) == 0.0
-    mask[el > 0.0] = 0.0
-    assert L.clipped_sky_fraction(ldr, mask) == 0.0           # no sky seen
-    ldr[..., 0] = 0.2                                          # one channel below: still clipped
-    mask[:] = 1.0
-    assert L.clipped_sky_fraction(ldr, mask) == pytest.approx(0.5, abs=0.02)
-
-
-def test_seen_sky_fraction_counts_the_observed_upper_hemisphere():
-    h, w = 90, 180
-    el = np.degrees(np.arcsin(equirect_directions(h, w)[..., 2]))
-    mask = (el < 0).astype(float)                                   # ground only
-    assert L.seen_sky_fraction(mask) == 0.0
-    mask[el > 30.0] = 1.0                                           # half the sky's solid angle
-    assert L.seen_sky_fraction(mask) == pytest.approx(0.5, abs=0.02)
-    assert L.seen_sky_fraction(np.ones((h, w, 1))) == pytest.approx(1.0)
-    with pytest.raises(ValueError, match="finite"):
-        L.seen_sky_fraction(np.full((h, w), np.nan))
-    with pytest.raises(ValueError, match=r"\[H, W, 1\]"):
-        L.seen_sky_fraction(np.ones((h, w, 3)))                   # an image, not a mask
-
-
 def test_clipped_region_across_the_seam_is_one():
     h, w = 32, 64
     ldr = np.full((h, w, 3), 0.3)

@@ -50,22 +50,17 @@ from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
 __all__ = ["expose", "unexpose", "fuse_brackets",
            "DEFAULT_EVS", "saturation_limit",
            "label_equirect", "area_resize_equirect", "extract_lights", "real_sh_basis", "mean_fill",
-           "push_pull_fill", "sh_fill", "check_ldr_mask"]
+           "push_pull_fill", "sh_fill", "check_ldr_mask", "SAT", "seen_sky_fraction",
+           "clipped_sky_fraction", "SEEN_SKY_WARN", "CLIPPED_SKY_WARN"]
 
 DEFAULT_EVS = (0.0, -2.5, -5.0)
+SAT = 0.98                 # EV-0 max channel at/above which a pixel counts as clipped
+CLIPPED_SKY_WARN = 0.3     # clipped_sky_fraction above it: the light inside is not readable
+SEEN_SKY_WARN = 0.25       # seen_sky_fraction below it: the lights above are the completion's guess
 
 
 # ---------------------------------------------------------------------------------------
 # Exposure model (NumPy or torch)
-
-
-
-
-
-
-
-
-
 
 
 def expose(hdr, ev: float):
@@ -129,9 +124,6 @@ def fuse_brackets(ldrs: dict, evs=DEFAULT_EVS, sat: float = 0.95, width: float =
 
 # ---------------------------------------------------------------------------------------
 # Equirect geometry
-
-
-
 
 
 def _overlap(edges_in, edges_out) -> np.ndarray:
@@ -264,6 +256,49 @@ def check_ldr_mask(ldr, mask, who: str) -> tuple[np.ndarray, np.ndarray]:
     if not (np.isfinite(ldr).all() and np.isfinite(mask).all()):
         raise ValueError(f"{who}: the panorama or the mask holds NaN/Inf values")
     return np.clip(ldr, 0.0, 1.0), mask > 0.5
+
+
+def clipped_sky_fraction(ldr, mask, sat: float = SAT) -> float:
+    """Solid-angle fraction of the observed upper hemisphere (elevation > 0) whose EV-0 max
+    channel is clipped (≥ ``sat``); 0 when none of it is observed.
+
+    Above ``CLIPPED_SKY_WARN`` one exposure no longer says where the light is nor how strong:
+    a sky blown out around the sun is one clipped region whose centroid is the sky's, and the
+    brackets and the head only see its rim. Through step 1 (``recon_light_e2e``, 64-px
+    captures) the captures that passed had at most 0.20 (courtyard 0.20, forest 0.17–0.19);
+    the two outdoor failures had 0.37 (``kiara_1_dawn``, a dawn glow, E ratio −31 %) and 0.71
+    (``venice_sunset`` exposed 4× brighter: −35 %, light 47° off; −6 % and +2 % at 0.25× and
+    1×). The threshold was set on those runs."""
+    ldr, seen = check_ldr_mask(ldr, mask, "clipped_sky_fraction")
+    h, w = seen.shape
+    up = np.broadcast_to(equirect_directions(h, w)[..., 2] > 0, (h, w))
+    dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
+    sky = seen & up
+    area = float((sky * dw).sum())
+    if area <= 0.0:
+        return 0.0
+    return float(((sky & (ldr.max(-1) >= sat)) * dw).sum() / area)
+
+
+def seen_sky_fraction(mask) -> float:
+    """Solid-angle fraction of the upper hemisphere (elevation > 0; sky or ceiling, where the
+    lights usually are) that is observed (mask > ½) in an equirect mask [H, W].
+
+    Below ``SEEN_SKY_WARN`` no light above the placement was seen, so the head has nothing to
+    restore and the sun's direction and power are the completion's guess. Through step 1
+    (``recon_light_e2e --sky-views 0``: only the 40 views looking down at the ground) it was
+    0.03 and E(sun)/E(up) came out −81 % (`blender_sunrise`), −57 % (`venice_sunset`) and
+    −23 % (`blender_city`), the light 40–46° off; with the 12 sky views it was 0.70–0.73."""
+    m = np.asarray(mask, np.float64)
+    m = m[..., 0] if m.ndim == 3 and m.shape[-1] == 1 else m
+    if m.ndim != 2 or not np.isfinite(m).all():
+        raise ValueError(f"seen_sky_fraction: need a finite [H, W] or [H, W, 1] mask, got "
+                         f"shape {np.shape(mask)}")
+    h, w = m.shape
+    up = np.broadcast_to(equirect_directions(h, w)[..., 2] > 0, (h, w))
+    dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
+    area = float((up * dw).sum())
+    return float(((up & (m > 0.5)) * dw).sum() / area) if area > 0 else 0.0
 
 
 def _check_fill(rgb, mask, name: str):

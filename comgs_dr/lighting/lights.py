@@ -57,19 +57,15 @@ import torch.nn as nn
 
 from comgs_dr.core.colorspace import LUMA, srgb_decode
 from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
-from comgs_dr.lighting.hdr import check_ldr_mask, label_equirect
+from comgs_dr.lighting.hdr import SAT, check_ldr_mask, label_equirect
 from comgs_dr.lighting.sg import render_lobes, sg_integral, sg_sharpness
 
 __all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_regions",
            "FEATURES", "region_features", "LightHead", "HeadEnsemble", "save_head", "load_head",
            "DEFAULT_HEAD", "predict_lobes", "downsample_clipped", "shared_power", "vote_shares",
-           "add_lights", "describe_regions", "regions_overlay", "SAT", "TRUST_BRACKETS",
-           "clipped_sky_fraction", "CLIPPED_SKY_WARN", "seen_sky_fraction", "SEEN_SKY_WARN"]
+           "add_lights", "describe_regions", "regions_overlay", "SAT", "TRUST_BRACKETS"]
 
-SAT = 0.98                 # EV-0 max channel at/above which a pixel counts as clipped
 MAX_LOG_GAIN = 25.0       # P_true / P_seen ≤ e^25 ≈ 7e10 (a real sun at EV 0: ~1e5)
-CLIPPED_SKY_WARN = 0.3     # clipped_sky_fraction above it: the light inside is not readable
-SEEN_SKY_WARN = 0.25       # seen_sky_fraction below it: the lights above are the completion's guess
 MAX_REGIONS = 8            # regions per panorama given to the head (largest observed power)
 TRUST_BRACKETS = 0.25      # add_lights: the brackets' vote on which region holds the power
                            # (benchmarks/light_ranking.py; README "The brackets' vote")
@@ -95,49 +91,6 @@ def _unit(v):
 
 def _check(ldr, mask):
     return check_ldr_mask(ldr, mask, "lights")
-
-
-def clipped_sky_fraction(ldr, mask, sat: float = SAT) -> float:
-    """Solid-angle fraction of the observed upper hemisphere (elevation > 0) whose EV-0 max
-    channel is clipped (≥ ``sat``); 0 when none of it is observed.
-
-    Above ``CLIPPED_SKY_WARN`` one exposure no longer says where the light is nor how strong:
-    a sky blown out around the sun is one clipped region whose centroid is the sky's, and the
-    brackets and the head only see its rim. Through step 1 (``recon_light_e2e``, 64-px
-    captures) the captures that passed had at most 0.20 (courtyard 0.20, forest 0.17–0.19);
-    the two outdoor failures had 0.37 (``kiara_1_dawn``, a dawn glow, E ratio −31 %) and 0.71
-    (``venice_sunset`` exposed 4× brighter: −35 %, light 47° off; −6 % and +2 % at 0.25× and
-    1×). The threshold was set on those runs."""
-    ldr, seen = _check(ldr, mask)
-    h, w = seen.shape
-    up = np.broadcast_to(equirect_directions(h, w)[..., 2] > 0, (h, w))
-    dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
-    sky = seen & up
-    area = float((sky * dw).sum())
-    if area <= 0.0:
-        return 0.0
-    return float(((sky & (ldr.max(-1) >= sat)) * dw).sum() / area)
-
-
-def seen_sky_fraction(mask) -> float:
-    """Solid-angle fraction of the upper hemisphere (elevation > 0; sky or ceiling, where the
-    lights usually are) that is observed (mask > ½) in an equirect mask [H, W].
-
-    Below ``SEEN_SKY_WARN`` no light above the placement was seen, so the head has nothing to
-    restore and the sun's direction and power are the completion's guess. Through step 1
-    (``recon_light_e2e --sky-views 0``: only the 40 views looking down at the ground) it was
-    0.03 and E(sun)/E(up) came out −81 % (`blender_sunrise`), −57 % (`venice_sunset`) and
-    −23 % (`blender_city`), the light 40–46° off; with the 12 sky views it was 0.70–0.73."""
-    m = np.asarray(mask, np.float64)
-    m = m[..., 0] if m.ndim == 3 and m.shape[-1] == 1 else m
-    if m.ndim != 2 or not np.isfinite(m).all():
-        raise ValueError(f"seen_sky_fraction: need a finite [H, W] or [H, W, 1] mask, got "
-                         f"shape {np.shape(mask)}")
-    h, w = m.shape
-    up = np.broadcast_to(equirect_directions(h, w)[..., 2] > 0, (h, w))
-    dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
-    area = float((up * dw).sum())
-    return float(((up & (m > 0.5)) * dw).sum() / area) if area > 0 else 0.0
 
 
 def clipped_regions(ldr, mask, sat: float = SAT, max_regions: int = MAX_REGIONS,

@@ -26,12 +26,11 @@ import numpy as np
 
 from comgs_dr.core.colorspace import LUMA, srgb_decode
 from comgs_dr.core.equirect import pixel_solid_angles
-from comgs_dr.lighting.hdr import area_resize_equirect, check_ldr_mask
+from comgs_dr.lighting.hdr import SAT, area_resize_equirect, check_ldr_mask
 
 __all__ = ["FEATURES", "label_features", "LabelModel", "fit_logistic", "load_model",
            "save_model", "classify", "resolve_label", "LABEL_CHOICES", "DEFAULT_MODEL", "SAT"]
 
-SAT = 0.98                 # EV-0 max channel at/above which a pixel counts as clipped
 ROWS = 32                  # features are read at this height (texture at a fixed scale)
 LABEL_CHOICES = ("auto", "outdoor", "indoor", "unknown")   # "auto": ``classify``
 DEFAULT_MODEL = Path(__file__).parent / "weights" / "scene_label.json"

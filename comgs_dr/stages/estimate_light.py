@@ -248,9 +248,9 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
         log.warning("estimate_light: coverage %.1f%% is below %.0f%% (the paper's tested "
                     "range); the completion is mostly guessed", 100 * cov, 100 * LOW_COVERAGE)
 
-    sky_seen = light_head.seen_sky_fraction(mask)
-    sky_clip = light_head.clipped_sky_fraction(rgb, mask)
-    if sky_seen < light_head.SEEN_SKY_WARN:
+    sky_seen = hdr.seen_sky_fraction(mask)
+    sky_clip = hdr.clipped_sky_fraction(rgb, mask)
+    if sky_seen < hdr.SEEN_SKY_WARN:
         fix = ("add views that see the sky, or give the map (compose --env)" if bg_dir is not None
                else "if the capture saw the sky, reconstruct with --background env (step 1 "
                "keeps no sky without it); else add sky views or give the map (compose --env)")
@@ -258,14 +258,14 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
                     "placement (warned below %.0f%%): the lights up there are the completion's "
                     "guess (measured through step 1 without sky views: E(sun)/E(up) 23-81%% "
                     "low, the light 40-46 deg off); %s", 100 * sky_seen,
-                    100 * light_head.SEEN_SKY_WARN, fix)
-    elif sky_clip > light_head.CLIPPED_SKY_WARN:
+                    100 * hdr.SEEN_SKY_WARN, fix)
+    elif sky_clip > hdr.CLIPPED_SKY_WARN:
         log.warning("estimate_light: %.1f%% of the observed sky is clipped at EV 0 (warned "
                     "above %.0f%%): its light's power, and where in it the light is, cannot be "
                     "read from one exposure (measured through step 1: E(sun)/E(up) off by "
                     "31-35%% there); a "
                     "capture exposed for the sky avoids it", 100 * sky_clip,
-                    100 * light_head.CLIPPED_SKY_WARN)
+                    100 * hdr.CLIPPED_SKY_WARN)
 
     t = time.perf_counter()
     label, p_outdoor = scene_label.resolve_label(cfg.label, rgb, mask)
