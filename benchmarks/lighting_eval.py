@@ -319,14 +319,18 @@ def evaluate(args, progress=print) -> dict:
                         lobes = L.predict_lobes(rgb, alpha, head, completion.LABELS[label])
                     kw = {} if args.trust_brackets is None else \
                         {"trust_brackets": args.trust_brackets}
+                    before = est
                     est = L.add_lights(est, lobes, **kw)[0]
                     dt += time.perf_counter() - t1
+                    dom = L.dominance(L.describe_regions(
+                        lobes, before, est, kw.get("trust_brackets", L.TRUST_BRACKETS)))
                 est_r, _ = lm.render_spheres(est, **sphere)
                 per = lm.sphere_metrics(est_r, gt_r, smask)
                 obj = 0.5 * (est_r["diffuse"] + est_r["matte_silver"])
                 records.append({"map": path.stem, "mask": j, "coverage": cov, "group": group,
                                 "label": label, "label_requested": label_req,
                                 "p_outdoor": p_out, "shift": shift, "method": name, "time_s": dt,
+                                "light_dominance": dom if with_lights else None,
                                 "pano_si_rmse": lm.si_rmse(est, gt), "materials": per,
                                 **{k: float(np.mean([per[m][k] for m in per]))
                                    for k, _ in METRICS},
@@ -443,6 +447,37 @@ def print_label_table(records) -> None:
           "| map | outdoor | indoor | unknown |\n|---|---|---|---|")
     for m, c in counts.items():
         print(f"| {m} | {c.get('outdoor', 0)} | {c.get('indoor', 0)} | {c.get('unknown', 0)} |")
+
+
+def dominance_table(records, method: str) -> list[dict]:
+    """The near-tie warning against the error it warns of: ``method``'s samples whose true
+    dominant light is observed, split by ``light_dominance`` (fewer than two clipped regions;
+    below ``lights.DOMINANCE_MARGIN``, where estimate-light warns; at or above it): samples,
+    mean light angle, and the share more than 30° off."""
+    from comgs_dr.lighting.lights import DOMINANCE_MARGIN
+    rows = {"< 2 clipped regions": [], f"near tie (< {DOMINANCE_MARGIN:g}, warned)": [],
+            f">= {DOMINANCE_MARGIN:g}": []}
+    keys = list(rows)
+    for r in records:
+        if r["method"] != method or r["light_in_hole"] or r.get("light_angle_deg") is None:
+            continue
+        d = r.get("light_dominance")
+        k = keys[0] if d is None else keys[1] if d < DOMINANCE_MARGIN else keys[2]
+        rows[k].append(r["light_angle_deg"])
+    return [{"split": k, "n": len(v), "light_angle": float(np.mean(v)) if v else float("nan"),
+             "over_30": float(np.mean(np.asarray(v) > 30.0)) if v else float("nan")}
+            for k, v in rows.items()]
+
+
+def print_dominance_table(records, method: str) -> None:
+    rows = dominance_table(records, method)
+    if not any(r["n"] for r in rows) or method is None:
+        return
+    print(f"\n### The near-tie warning (`{method}`, true light visible)\n\n"
+          "| strongest / next clipped region | n | light angle ° | share > 30° off |\n"
+          "|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['split']} | {r['n']} | {r['light_angle']:.1f} | {r['over_30']:.2f} |")
 
 
 def print_tables(res: dict, s: dict, args):
@@ -580,6 +615,7 @@ def main(argv=None) -> dict:
     s = summarise(res)
     print_tables(res, s, args)
     print_label_table(res["records"])
+    print_dominance_table(res["records"], s["ours"])
     fig = save_figure(res, Path(args.out) / "lighting_eval.png")
     if fig:
         print(f"\nfigure: {fig}")

@@ -92,6 +92,9 @@ def test_lighting_eval_smoke(tmp_path, pano_data, variant, capsys):
         assert r["light_in_hole"] in (None, True, False)
         assert r["light_clear"] in (None, True, False)
     assert {r["label"] for r in out["records"]} == {"indoor", "outdoor"}
+    for r in out["records"]:                     # the head's near-tie figure, +lights only
+        d = r["light_dominance"]
+        assert d is None or (r["method"].endswith("+lights") and d >= 1.0)
     assert (tmp_path / "fig" / "lighting_eval.png").stat().st_size > 0
     dump = json.loads((tmp_path / "r.json").read_text())
     assert dump["summary"]["net_wins"] == k and len(dump["records"]) == 3 * len(methods)
@@ -206,3 +209,16 @@ def test_bad_maps_are_all_named_before_any_work(tmp_path, monkeypatch, variant):
     msg = str(e.value)
     assert all(n in msg for n in ("black.exr", "nan.exr", "broken.hdr"))
     assert "good.exr" not in msg
+
+
+def test_dominance_table_splits_by_the_warning():
+    from comgs_dr.lighting.lights import DOMINANCE_MARGIN
+    rec = lambda d, ang, hole=False, m="ours": {"method": m, "light_in_hole": hole,  # noqa: E731
+                                                  "light_angle_deg": ang, "light_dominance": d}
+    rows = _bench().dominance_table(
+        [rec(None, 10.0), rec(1.1, 80.0), rec(1.2, 20.0), rec(DOMINANCE_MARGIN, 5.0),
+         rec(3.0, 45.0), rec(1.1, 90.0, hole=True), rec(1.1, 90.0, m="mean"),
+         rec(1.1, None)], "ours")
+    assert [r["n"] for r in rows] == [1, 2, 2]
+    assert [r["light_angle"] for r in rows] == [10.0, 50.0, 25.0]
+    assert [r["over_30"] for r in rows] == [0.0, 0.5, 0.5]
