@@ -474,6 +474,20 @@ def test_bad_llff_pose(tmp_path, rng):
             "non-finite")
 
 
+def test_absurd_camera_translation_is_a_clear_error(tmp_path, rng):
+    """A finite pose 1e200 away loaded before, with an infinite scene extent (and a NumPy
+    overflow warning): it is a damaged file, named with the pose."""
+    import warnings
+    write_llff(tmp_path, ring_cameras(2), 8, 8, 10.0, rng)
+    pb = np.load(tmp_path / "poses_bounds.npy")
+    pb[1, 3] = 1e200
+    np.save(tmp_path / "poses_bounds.npy", pb)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                       # no overflow on the way
+        _raises(lambda: D.load_llff(tmp_path), tmp_path / "poses_bounds.npy", "IMG_001.png",
+                "beyond 1e+12 scene units")
+
+
 def test_bad_corrupt_image(nerf):
     (nerf / "test" / "r_0.png").write_bytes(b"\x89PNG not really")
     _raises(lambda: D.load_nerf_synthetic(nerf), nerf / "test" / "r_0.png", "corrupt")

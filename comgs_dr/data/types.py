@@ -38,6 +38,9 @@ MITSUBA_FROM_LLFF = np.array([[0.0, -1.0, 0.0, 0.0], [-1.0, 0.0, 0.0, 0.0],
 FOCAL_TOLERANCE = 0.01
 #: Largest deviation of a pose's rotation block from orthonormal that is silently repaired.
 RIGID_TOLERANCE = 1e-2
+#: A camera farther than this from the origin (any units) is a damaged file, not a capture:
+#: at 1e200 the bounds overflowed to an infinite extent and the loader went on silently.
+MAX_TRANSLATION = 1e12
 #: Sensor clip planes × the scene extent. Mitsuba's defaults (0.01 and 1e4) are absolute:
 #: a millimetre-scale scene was clipped away whole (an empty render, no error).
 CLIP_FRACS = (1e-4, 1e4)
@@ -220,6 +223,9 @@ def rigid_pose(m, where: str) -> np.ndarray:
         raise DatasetError(f"{where}: pose must be 3x4 or 4x4, got shape {a.shape}")
     if not np.all(np.isfinite(a)):
         raise DatasetError(f"{where}: pose has non-finite entries")
+    if np.abs(a[:3, 3]).max() > MAX_TRANSLATION:
+        raise DatasetError(f"{where}: pose translation {a[:3, 3].tolist()} is beyond "
+                           f"{MAX_TRANSLATION:g} scene units (a damaged file?)")
     if a.shape == (4, 4) and not np.allclose(a[3], [0, 0, 0, 1], atol=1e-6):
         raise DatasetError(f"{where}: pose's last row is {a[3].tolist()}, not [0, 0, 0, 1]")
     r = a[:3, :3]
