@@ -39,11 +39,12 @@ from comgs_dr.core.cameras import camera_rays
 from comgs_dr.core.hostarray import to_jit
 from comgs_dr.emitters.octenvmap import emitter_class
 from comgs_dr.lighting.envmap import read_envmap_file, write_exr
+from comgs_dr.lighting.hdr import SAT
 
 KEY = "environment.data"
 FILE, OBSERVED_FILE = "background.exr", "background_observed.exr"
 CLIPPED_FILE = "background_clipped.npz"
-CLIPPED = 0.98      # a display value at/above this is clipped (as ``lighting.lights.SAT``)
+CLIPPED = SAT       # a display value at/above this is clipped (``lighting.hdr.SAT``)
 
 
 def initial_emitter(resolution: int, views) -> "mi.Emitter":
