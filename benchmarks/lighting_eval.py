@@ -102,6 +102,8 @@ def parse_args(argv=None):
     ap.add_argument("--default-label", default="auto",
                     choices=("unknown", "indoor", "outdoor", "auto"),
                     help="label of the maps --labels does not name (auto: classified per input)")
+    ap.add_argument("--scene-label", default=None, help="scene-label model for 'auto' (default: "
+                    "the shipped scene_label.DEFAULT_MODEL; e.g. one from train-scene-label)")
     ap.add_argument("--held-out", action="store_true", help="only the maps of --maps named in "
                     "pano_data.HELD_OUT (never trained on), labelled by pano_data.label_of")
     ap.add_argument("--out", default="out/lighting_eval", help="folder for the PNG figure")
@@ -299,7 +301,7 @@ def evaluate(args, progress=print) -> dict:
             normal = np.asarray(mk["normal"], np.float32)                         # [H, W, 3]
             # un-premultiplied colour where anything is seen, as trace_panorama gives it
             rgb = np.where(alpha[..., None] > 0, hdr.expose(gt, 0.0), 0.0).astype(np.float32)
-            label, p_out = scene_label.resolve_label(label_req, rgb, alpha)
+            label, p_out = scene_label.resolve_label(label_req, rgb, alpha, args.scene_label)
             t1 = time.perf_counter()
             gt_r, smask = lm.render_spheres(gt, **sphere)
             obj_gt = 0.5 * (gt_r["diffuse"] + gt_r["matte_silver"])

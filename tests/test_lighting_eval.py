@@ -156,6 +156,15 @@ def test_held_out_selects_the_never_trained_maps(tmp_path, pano_data, variant, c
     n = len({(r["map"], r["mask"], r["draw"]) for r in out["records"]})
     assert sum(sum(c.values()) for c in counts.values()) == n
     assert "### Labels given by the classifier" in capsys.readouterr().out
+    # --scene-label: another classifier decides "auto" (here one that answers indoor always)
+    m = scene_label.load_model()
+    always_indoor = scene_label.LabelModel(m.mean, m.std, [0.0] * len(m.coef), -20.0, m.margin)
+    path = scene_label.save_model(always_indoor, tmp_path / "indoor.json")
+    out = _bench().main(["--maps", str(maps), "--quick", "--light-head", "none",
+                         "--default-label", "auto", "--scene-label", str(path),
+                         "--out", str(tmp_path / "fig"), "--examples", "0"])
+    assert out["records"] and {r["label"] for r in out["records"]} == {"indoor"}
+    assert all(r["p_outdoor"] < 1e-6 for r in out["records"])
     (maps / f"{HELD_OUT[0]}.exr").unlink()
     with pytest.raises(FileNotFoundError, match="--held-out"):
         _bench().main(["--maps", str(maps), "--held-out", "--quick"])
