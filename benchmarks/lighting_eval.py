@@ -21,6 +21,11 @@ traced from procedural surfel scenes), with a random rotation about Z:
     python benchmarks/lighting_eval.py --maps ../shared/data/hdri --weights W.pt --masks 16
     python benchmarks/lighting_eval.py --maps DIR --quick        # 2 masks per map, res 32
 
+Before the run and again at its end, a map that one of the learned models used was fitted
+on (its model card's list of maps, ``pano_data.trained_maps``, matched by file stem) is named
+with a WARNING: its scores are not held-out scores. The JSON records it
+(``training_overlap``).
+
 Methods: ``net`` (the completion net; observed lights re-pasted as the paper re-adds them,
 ``completion.blend_observed``), ``net+lights`` (plus the light head's lobes for lights clipped
 at EV 0, ``lighting.lights``; the brackets vote on the head's shares with
@@ -132,6 +137,62 @@ def list_maps(folder) -> list[Path]:
     if not maps:
         raise FileNotFoundError(f"--maps: no .hdr/.exr file in {p}")
     return maps
+
+
+def select_maps(args) -> tuple[list[Path], dict]:
+    """(the maps evaluated, {stem: label requested}): every map of ``--maps``, or with
+    ``--held-out`` those named in ``pano_data.HELD_OUT``, labelled by name unless
+    ``--labels`` says otherwise."""
+    pano = importlib.import_module("comgs_dr.lighting.pano_data")
+    labels = json.loads(Path(args.labels).read_text()) if args.labels else {}
+    maps = list_maps(args.maps)
+    if args.held_out:
+        maps = [p for p in maps if p.stem in pano.HELD_OUT]
+        if not maps:
+            raise FileNotFoundError(f"--held-out: none of {pano.HELD_OUT} in {args.maps}")
+        labels = {p.stem: pano.label_of(p.stem) for p in maps} | labels
+    return maps, labels
+
+
+def model_cards(args, labels: dict, maps) -> dict:
+    """{model: its weights path} for the learned models this run uses: the completion net,
+    the light head and, when a map's label is "auto", the scene-label classifier."""
+    backends = importlib.import_module("comgs_dr.lighting.backends")
+    lights = importlib.import_module("comgs_dr.lighting.lights")
+    scene_label = importlib.import_module("comgs_dr.lighting.scene_label")
+    out = {}
+    net = args.weights or (backends.DEFAULT_WEIGHTS if Path(backends.DEFAULT_WEIGHTS).is_file()
+                           else None)
+    if net:
+        out["completion net"] = Path(net)
+    if args.light_head != "none":
+        head = Path(args.light_head) if args.light_head else Path(lights.DEFAULT_HEAD)
+        if head.is_file():
+            out["light head"] = head
+    if any(str(labels.get(p.stem, args.default_label)) == "auto" for p in maps):
+        out["scene label"] = Path(args.scene_label or scene_label.DEFAULT_MODEL)
+    return out
+
+
+def training_overlap(args) -> dict:
+    """{"trained_on": {map stem: [models fitted on it]}, "no_card": [models whose model card
+    does not say what they were fitted on]} (``pano_data.trained_maps``; maps are matched by
+    file stem). A map in "trained_on" does not give a held-out score."""
+    pano = importlib.import_module("comgs_dr.lighting.pano_data")
+    maps, labels = select_maps(args)
+    seen = {name: pano.trained_maps(path) for name, path in model_cards(args, labels, maps).items()}
+    over = {p.stem: [n for n, s in seen.items() if s is not None and p.stem in s] for p in maps}
+    return {"trained_on": {k: v for k, v in over.items() if v},
+            "no_card": [n for n, s in seen.items() if s is None]}
+
+
+def print_overlap(ov: dict) -> None:
+    for stem, models in ov["trained_on"].items():
+        print(f"WARNING: {stem} was in the training data of the {', '.join(models)}: its "
+              f"scores are not held-out scores")
+    for name in ov["no_card"]:
+        print(f"note: the {name} has no model card naming its training maps; cannot tell "
+              f"whether the maps evaluated were among them")
 
 
 def load_eval_map(path, res: int) -> np.ndarray:
@@ -264,14 +325,8 @@ def evaluate(args, progress=print) -> dict:
     from comgs_dr.lighting import completion, hdr, scene_label
     comgs_dr.set_variant("llvm_ad_rgb")
     pano = importlib.import_module("comgs_dr.lighting.pano_data")
-    labels = json.loads(Path(args.labels).read_text()) if args.labels else {}
     from comgs_dr.lighting import lights as L
-    maps = list_maps(args.maps)
-    if args.held_out:
-        maps = [p for p in maps if p.stem in pano.HELD_OUT]
-        if not maps:
-            raise FileNotFoundError(f"--held-out: none of {pano.HELD_OUT} in {args.maps}")
-        labels = {p.stem: pano.label_of(p.stem) for p in maps} | labels
+    maps, labels = select_maps(args)
     h, w = args.res, 2 * args.res
     gt_maps = load_eval_maps(maps, h)              # every map checked before any work
     methods, head = make_methods(args.weights, args.light_head, args.diffusers,
@@ -594,6 +649,8 @@ def main(argv=None) -> dict:
         torch.set_num_threads(max(1, args.threads))
     except ImportError:  # pragma: no cover
         pass
+    overlap = training_overlap(args)      # said before the long work, and in the JSON
+    print_overlap(overlap)
     runs = []
     for k in range(args.draws):
         a = argparse.Namespace(**{**vars(args), "seed": args.seed + k})
@@ -625,9 +682,11 @@ def main(argv=None) -> dict:
         p = Path(args.json)
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text(json.dumps({"args": vars(args), "summary": _jsonable(s),
+                                 "training_overlap": overlap,
                                  "records": res["records"], "skipped": res["skipped"]},
                                 indent=1))
         print(f"json: {p}")
+    print_overlap(overlap)
     for line in draw_lines:
         print(line)
     print(f"light_angle_clear ours={s['light_angle_clear_ours']:.4g} "
@@ -640,7 +699,8 @@ def main(argv=None) -> dict:
             f"si_rmse_best_baseline={s['si_rmse_best_baseline']:.5g}")
     print(line)
     sys.stdout.flush()
-    return {**s, "line": line, "skipped": res["skipped"], "records": res["records"]}
+    return {**s, "line": line, "skipped": res["skipped"], "records": res["records"],
+            "training_overlap": overlap}
 
 
 if __name__ == "__main__":

@@ -231,3 +231,33 @@ def test_dominance_table_splits_by_the_warning():
     assert [r["n"] for r in rows] == [1, 2, 2]
     assert [r["light_angle"] for r in rows] == [10.0, 50.0, 25.0]
     assert [r["over_30"] for r in rows] == [0.0, 0.5, 0.5]
+
+
+def test_maps_the_models_were_trained_on_are_named(tmp_path, capsys):
+    """A map a model was fitted on (its model card's list, matched by file stem) is named
+    before the run and in the result; a model without a card is said to be unknown."""
+    from comgs_dr.lighting import pano_data
+    from comgs_dr.lighting.envmap import write_exr
+    from comgs_dr.lighting.lights import DEFAULT_HEAD, LightHead, save_head
+    card = pano_data.trained_maps(DEFAULT_HEAD)
+    assert card and not card & set(pano_data.HELD_OUT)          # the shipped card says
+    trained = sorted(card)[0]
+    maps = tmp_path / "maps"
+    sky = np.full((8, 16, 3), 0.5)
+    for stem in (trained, "fresh", pano_data.HELD_OUT[0]):
+        write_exr(maps / f"{stem}.exr", sky, "equirect")
+    bench = _bench()
+    ov = bench.training_overlap(bench.parse_args(["--maps", str(maps)]))
+    assert ov == {"trained_on": {trained: ["completion net", "light head", "scene label"]},
+                  "no_card": []}
+    # labels given, no head: only the net; a head saved by hand has no card
+    head = save_head(LightHead(), tmp_path / "head.pt")
+    ov = bench.training_overlap(bench.parse_args(["--maps", str(maps), "--default-label",
+                                                  "outdoor", "--light-head", str(head)]))
+    assert ov == {"trained_on": {trained: ["completion net"]}, "no_card": ["light head"]}
+    ov = bench.training_overlap(bench.parse_args(["--maps", str(maps), "--held-out"]))
+    assert ov == {"trained_on": {}, "no_card": []}
+    bench.print_overlap({"trained_on": {trained: ["light head"]}, "no_card": ["scene label"]})
+    out = capsys.readouterr().out
+    assert f"WARNING: {trained} was in the training data of the light head" in out
+    assert "the scene label has no model card" in out

@@ -83,6 +83,24 @@ def test_map_files_names_every_unusable_map(tmp_path):
     assert all(n in str(e.value) for n in ("black.exr", "oct.exr", "cut.hdr"))
 
 
+@pytest.mark.parametrize("name,card,expect", [
+    ("net.pt", {"data": {"poly_haven": ["a", "b"]}}, {"a", "b"}),          # train-completion
+    ("head.pt", {"maps": ["c"], "held_out": ["d"]}, {"c"}),                 # train-light-head
+    ("label.json", {"format": "x", "info": {"maps": ["e"]}}, {"e"}),        # train-scene-label
+    ("head.pt", {"maps": "c"}, None),                                       # not a list
+    ("head.pt", ["c"], None),
+    ("head.pt", None, None),                                                # no card
+])
+def test_trained_maps_reads_each_model_card(tmp_path, name, card, expect):
+    card_path = tmp_path / (name if name.endswith(".json") else name.replace(".pt", ".json"))
+    if card is not None:
+        card_path.write_text(json.dumps(card))
+    got = P.trained_maps(tmp_path / name)
+    assert got == (None if expect is None else frozenset(expect))
+    card_path.write_text("{not json")
+    assert P.trained_maps(tmp_path / name) is None
+
+
 def test_rotate_u_round_trip():
     x = np.random.default_rng(1).random((4, 8, 3))
     np.testing.assert_array_equal(P.rotate_u(P.rotate_u(x, 3), -3), x)

@@ -17,6 +17,7 @@ so the package makes its own:
 from __future__ import annotations
 
 import colorsys
+import json
 import logging
 from pathlib import Path
 
@@ -37,7 +38,7 @@ from comgs_dr.lighting.hdr import area_resize_equirect, expose
 
 log = logging.getLogger(__name__)
 
-__all__ = ["HELD_OUT", "label_of", "auto_exposure", "load_map", "load_maps", "map_files",
+__all__ = ["HELD_OUT", "label_of", "trained_maps", "auto_exposure", "load_map", "load_maps", "map_files",
            "sunsky_panorama", "room_panorama", "rotate_u", "augmented_view"]
 
 # evaluation maps of shared/data/hdri, never trained on: two Poly Haven maps and three of the
@@ -110,6 +111,29 @@ def map_files(folder, exclude=(), check_rows: int = 16) -> list:
                    if p.suffix.lower() in (".hdr", ".exr") and p.stem not in set(exclude))
     load_maps(files, lambda p: load_map(p, check_rows, 2 * check_rows), str(folder))
     return files
+
+
+def trained_maps(path) -> frozenset | None:
+    """The real maps (file stems) a lighting model was fitted on, from its model card: the
+    JSON beside a ``.pt`` (``train-completion``: ``data.poly_haven``; ``train-light-head``:
+    ``maps``) or the ``train-scene-label`` model itself (``info.maps``). None when there is
+    no card or it does not say (a model saved by hand). Evaluation on a map in this set is
+    not a held-out score."""
+    p = Path(path)
+    card = p if p.suffix.lower() == ".json" else p.with_suffix(".json")
+    try:
+        d = json.loads(card.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(d, dict):
+        return None
+    for keys in (("data", "poly_haven"), ("maps",), ("info", "maps")):
+        v = d
+        for k in keys:
+            v = v.get(k) if isinstance(v, dict) else None
+        if isinstance(v, list) and all(isinstance(x, str) for x in v):
+            return frozenset(v)
+    return None
 
 
 def rotate_u(img: np.ndarray, shift: int) -> np.ndarray:
