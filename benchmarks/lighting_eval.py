@@ -136,6 +136,11 @@ def list_maps(folder) -> list[Path]:
     maps = sorted(f for f in p.iterdir() if f.suffix.lower() in (".hdr", ".exr"))
     if not maps:
         raise FileNotFoundError(f"--maps: no .hdr/.exr file in {p}")
+    stems = [f.stem for f in maps]
+    twins = sorted({f.name for f in maps if stems.count(f.stem) > 1})
+    if twins:           # results, --labels and the model cards name maps by stem
+        raise ValueError(f"--maps: maps share a name apart from the extension: "
+                         f"{', '.join(twins)}; rename one of each")
     return maps
 
 
@@ -338,6 +343,7 @@ def evaluate(args, progress=print) -> dict:
     t_masks = time.perf_counter() - t0
     records, examples, skipped, t_render = [], [], 0, []
     for mi_, path in enumerate(maps):
+        n0, skip0 = len(records), skipped
         gt_map = gt_maps[path]
         label_req = str(labels.get(path.stem, args.default_label))
         if label_req not in scene_label.LABEL_CHOICES:
@@ -397,8 +403,9 @@ def evaluate(args, progress=print) -> dict:
                 examples.append({"map": path.stem, "coverage": cov, "gt": gt, "input": rgb,
                                  "alpha": alpha, "gt_spheres": gt_r, "mask": smask,
                                  "est": ests})
-        progress(f"[{mi_ + 1}/{len(maps)}] {path.name}: {len(records) // len(methods)} samples, "
-                 f"{skipped} masks < 40 % skipped ({time.perf_counter() - t0:.1f} s)")
+        progress(f"[{mi_ + 1}/{len(maps)}] {path.name}: {(len(records) - n0) // len(methods)} "
+                 f"samples, {skipped - skip0} masks < 40 % skipped "
+                 f"({time.perf_counter() - t0:.1f} s in all)")
     return {"records": records, "examples": examples, "skipped": skipped,
             "methods": list(methods), "maps": [p.name for p in maps], "t_masks": t_masks,
             "t_render": float(np.mean(t_render)) if t_render else float("nan"),
@@ -681,10 +688,12 @@ def main(argv=None) -> dict:
     if args.json:
         p = Path(args.json)
         p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(json.dumps({"args": vars(args), "summary": _jsonable(s),
-                                 "training_overlap": overlap,
-                                 "records": res["records"], "skipped": res["skipped"]},
-                                indent=1))
+        from comgs_dr.core.runlog import json_safe     # NaN / inf as null: strict JSON
+        p.write_text(json.dumps(json_safe({"args": vars(args), "summary": _jsonable(s),
+                                           "training_overlap": overlap,
+                                           "records": res["records"],
+                                           "skipped": res["skipped"]}),
+                                indent=1, allow_nan=False))
         print(f"json: {p}")
     print_overlap(overlap)
     for line in draw_lines:
@@ -704,4 +713,7 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except (FileNotFoundError, ValueError) as exc:      # bad input: one line, not a traceback
+        sys.exit(f"lighting_eval: error: {exc}")

@@ -191,6 +191,12 @@ def test_save_load_roundtrip_and_errors(tmp_path):
     junk.write_bytes(b"not a checkpoint")
     with pytest.raises(C.WeightsError, match="not a readable"):
         C.load_weights(junk)
+    import pickle
+    foreign = tmp_path / "foreign.pt"                    # a pickle torch refuses to unpickle
+    foreign.write_bytes(pickle.dumps(object()))
+    with pytest.raises(C.WeightsError, match="not a readable") as e:
+        C.load_weights(foreign)
+    assert "weights_only" not in str(e.value) and "\n" not in str(e.value)   # no unsafe advice
     tampered = tmp_path / "tampered.pt"
     torch.save({**ckpt, "config": {**ckpt["config"], "base_channels": 16}}, tampered)
     with pytest.raises(C.WeightsError, match="state dict"):

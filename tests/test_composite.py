@@ -426,3 +426,18 @@ def test_composition_shows_the_scene_runs_learned_sky(tmp_path):
         assert np.allclose(img[empty], expect[empty], atol=0.03)
         full = ref.sum(-1) > 0
         assert np.abs(img[full] - ref[full]).max() < 0.6         # covered pixels barely move
+
+
+def test_compose_warns_about_a_black_environment_map(tmp_path, caplog):
+    """A black --env is accepted (a valid map) but said: the object keeps only its baked light."""
+    import logging
+
+    from comgs_dr.stages import compose as cs
+    for value, warned in ((0.0, True), (0.5, False)):
+        em.write_exr(tmp_path / "env.exr", np.full((8, 16, 3), value, np.float32), "equirect")
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="comgs_dr.stages.compose"):
+            out = cs._lighting(["a"], {"a": np.zeros(3)}, tmp_path / "env.exr", None, 8,
+                               tmp_path / "comp", {})
+        assert out["paths"]["a"].is_file()
+        assert ("is black" in caplog.text) == warned

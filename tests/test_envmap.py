@@ -100,6 +100,14 @@ def test_bad_files_and_values(tmp_path):
         em.read_envmap_file(tmp_path / "sq.exr")
     with pytest.raises(FileNotFoundError):
         em.read_envmap_file(tmp_path / "missing.exr")
+    # 8-bit photos hold display values: refused, not read as radiance 0-255
+    ldr = np.full((8, 16, 3), 200, np.uint8)
+    for name in ("photo.png", "photo.jpg"):
+        mi.Bitmap(ldr).write(str(tmp_path / name))
+        with pytest.raises(ValueError, match="display values, not radiance"):
+            em.read_envmap_file(tmp_path / name)
+    mi.Bitmap(np.full((8, 16, 3), 2.5, np.float32)).write(str(tmp_path / "float.pfm"))
+    assert em.read_envmap_file(tmp_path / "float.pfm")[0].max() == 2.5    # float formats read
     with pytest.raises(ValueError, match="non-negative"):
         em.OctEnvmap(-np.ones((4, 4, 3)))
     with pytest.raises(ValueError, match=r"\[R, R, 3\]"):

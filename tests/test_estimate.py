@@ -312,6 +312,18 @@ def test_write_outputs_and_reload(result, tmp_path):
     assert im.size == (2 * W, 4 * (H + 16))                # 7 panels, two per row
     with pytest.raises(ValueError, match=r"\.exr"):
         write_outputs(result, tmp_path / "env.png")
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(ValueError, match="afile is a file, not a folder"):
+        output_paths(tmp_path / "afile" / "deeper" / "env.exr")
+    (tmp_path / "d.exr").mkdir()
+    with pytest.raises(ValueError, match="is a folder"):
+        output_paths(tmp_path / "d.exr")
+    # strict JSON: an infinite setting or a NaN value is written as null, not Infinity / NaN
+    r = dict(result, meta={**result["meta"], "clipped_max_texels": float("inf"),
+                           "x": np.float32("nan")})
+    doc = json.loads(write_outputs(r, out)["json"].read_text(),
+                     parse_constant=lambda c: pytest.fail(f"non-standard JSON {c}"))
+    assert doc["meta"]["clipped_max_texels"] is None and doc["meta"]["x"] is None
 
 
 def test_cli_on_ply(params, tiny_weights, tmp_path, capsys):
@@ -351,6 +363,21 @@ def test_cli_on_ply(params, tiny_weights, tmp_path, capsys):
     assert "bounding box" in capsys.readouterr().err
     assert main(args + ["--backend", "diffusers"]) == 2
     assert "--diffusers-dir" in capsys.readouterr().err
+    for extra in (["--backend", "mean", "--weights", str(tiny_weights)],
+                  ["--backend", "sh", "--net-resolution", "32", "64"],
+                  ["--diffusers-dir", str(tmp_path)]):
+        assert main(args + extra) == 2
+        assert "does not apply to --backend" in capsys.readouterr().err
+    n_traces = []
+    import comgs_dr.stages.estimate_light as E
+    real = E.panorama.trace_panorama
+    E.panorama.trace_panorama = lambda *a, **k: n_traces.append(1) or real(*a, **k)
+    try:
+        bad_out = [a if a != str(out) else str(tmp_path / "env.hdr") for a in args]
+        assert main(bad_out + ["--backend", "mean"]) == 2
+        assert ".exr" in capsys.readouterr().err and not n_traces      # refused before the trace
+    finally:
+        E.panorama.trace_panorama = real
 
 
 def test_position_outside_scene(params):
@@ -421,7 +448,8 @@ def test_config_and_default_backend_errors(params, tmp_path, monkeypatch):
                 dict(oct_res=1), dict(colour_space="aces"), dict(clipped_max_texels=-1),
                 dict(clipped_max_texels=float("nan")), dict(light_head_rows=-1),
                 dict(light_head_rows=1.5), dict(light_trust_brackets=-0.5),
-                dict(light_trust_brackets=2.0), dict(light_trust_brackets=float("nan"))):
+                dict(light_trust_brackets=2.0), dict(light_trust_brackets=float("nan")),
+                dict(width=2 * W), dict(width=W, height=W)):            # not 2:1
         with pytest.raises(ValueError, match="EstimateConfig"):
             estimate_light(_scene(params), POS, EstimateConfig(**{**SMALL, **bad}),
                            backends.FillBackend("mean"))
@@ -431,6 +459,17 @@ def test_config_and_default_backend_errors(params, tmp_path, monkeypatch):
     with pytest.raises(FileNotFoundError, match="scene file not found"):
         estimate_light(tmp_path / "missing.ply", POS, EstimateConfig(**SMALL),
                        backends.FillBackend("mean"))
+    # a named model that does not exist fails before the trace (the scene is not even read)
+    for kw, what in ((dict(light_head=str(tmp_path / "h.pt")), "light head not found"),
+                     (dict(scene_label=str(tmp_path / "m.json")), "scene-label model not found")):
+        with pytest.raises(FileNotFoundError, match=what):
+            estimate_light(tmp_path / "missing.ply", POS, EstimateConfig(**SMALL, **kw),
+                           backends.FillBackend("mean"))
+    # the scene-label model only matters for label "auto"
+    r = estimate_light(_scene(params), POS, EstimateConfig(
+        label="indoor", light_head="none", scene_label=str(tmp_path / "m.json"), **SMALL),
+        backends.FillBackend("mean"))
+    assert r["meta"]["scene_label_model"] is None
 
 
 def test_small_parts_keeps_only_small_clipped_components():
@@ -504,3 +543,8 @@ def test_compose_cli_reports_each_placements_auto_label(monkeypatch, tmp_path, c
         capsys.readouterr().out
     assert main(args + ["--label", "outdoor"]) == 0
     assert calls[-1] == "outdoor" and "label auto" not in capsys.readouterr().out
+    for extra in (["--label", "indoor"], ["--scene-label", str(tmp_path / "m.json")]):
+        assert main(args + ["--env", str(tmp_path / "env.exr")] + extra) == 2
+        assert "with --env the map is the light" in capsys.readouterr().err
+    assert main(args + ["--scene-label", str(tmp_path / "m.json")]) == 2      # missing model
+    assert "scene-label model not found" in capsys.readouterr().err

@@ -96,7 +96,8 @@ def test_lighting_eval_smoke(tmp_path, pano_data, variant, capsys):
         d = r["light_dominance"]
         assert d is None or (r["method"].endswith("+lights") and d >= 1.0)
     assert (tmp_path / "fig" / "lighting_eval.png").stat().st_size > 0
-    dump = json.loads((tmp_path / "r.json").read_text())
+    dump = json.loads((tmp_path / "r.json").read_text(),     # strict JSON: no NaN / Infinity
+                      parse_constant=lambda c: pytest.fail(f"non-standard JSON {c}"))
     assert dump["summary"]["net_wins"] == k and len(dump["records"]) == 3 * len(methods)
     assert any(l.startswith("| coverage | light | method |") for l in lines)
 
@@ -165,6 +166,10 @@ def test_held_out_selects_the_never_trained_maps(tmp_path, pano_data, variant, c
                          "--out", str(tmp_path / "fig"), "--examples", "0"])
     assert out["records"] and {r["label"] for r in out["records"]} == {"indoor"}
     assert all(r["p_outdoor"] < 1e-6 for r in out["records"])
+    write_exr(maps / "trained_on.hdr", sky, "equirect")       # "trained_on" twice
+    with pytest.raises(ValueError, match="trained_on.exr, trained_on.hdr"):
+        _bench().main(["--maps", str(maps), "--quick"])
+    (maps / "trained_on.hdr").unlink()
     (maps / f"{HELD_OUT[0]}.exr").unlink()
     with pytest.raises(FileNotFoundError, match="--held-out"):
         _bench().main(["--maps", str(maps), "--held-out", "--quick"])

@@ -46,6 +46,15 @@ def test_runlog_roundtrip_torn_line_and_errors(tmp_path):
         runlog.read_records(tmp_path / "bad.metrics.jsonl")
 
 
+def test_json_safe_gives_strict_json():
+    x = {1: (np.float32(2.5), np.array([1.0, np.inf])), "n": float("nan"), "s": "a",
+         "i": np.int64(3), "b": True, "z": None}
+    y = runlog.json_safe(x)
+    assert y == {"1": [2.5, [1.0, None]], "n": None, "s": "a", "i": 3, "b": True, "z": None}
+    assert json.loads(json.dumps(y, allow_nan=False)) == y
+    assert math.isnan(x["n"])                                     # the input is not modified
+
+
 def test_train_loop_writes_jsonl_and_resume_drops_stale(tmp_path):
     from comgs_dr.train.loop import run_loop
 

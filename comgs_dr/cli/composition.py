@@ -10,7 +10,7 @@ from comgs_dr import set_variant
 from comgs_dr.lighting import backends
 from comgs_dr.stages.compose import PRESETS as COMPOSE_PRESETS
 from comgs_dr.stages.compose import compose
-from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light
+from comgs_dr.stages.estimate_light import EstimateConfig, check_model_files, estimate_light
 from comgs_dr.stages.render_comp import VARIANTS as RENDER_VARIANTS
 from comgs_dr.stages.render_comp import render_comp
 from comgs_dr.surfels.edit import parse_material_spec
@@ -40,9 +40,12 @@ def _add_compose(sub) -> None:
     p.add_argument("--preset", choices=sorted(COMPOSE_PRESETS), default="default",
                    help="default: 10k shadow probes per object (paper); fast: 2k")
     p.add_argument("--shadow-probes", type=int, metavar="N", help="shadow probes per object")
-    p.add_argument("--label", choices=("auto", "unknown", "indoor", "outdoor"), default="auto",
-                   help="scene label for the lighting estimation (auto: classified from the "
-                   "traced panorama)")
+    p.add_argument("--label", choices=("auto", "unknown", "indoor", "outdoor"), default=None,
+                   help="scene label for the lighting estimation (default auto: classified "
+                   "from the traced panorama; not with --env)")
+    p.add_argument("--scene-label", metavar="M.json", default=None,
+                   help="the classifier of label auto (default: the shipped one; e.g. from "
+                   "`comgs train-scene-label`; not with --env)")
     p.add_argument("--variant", default="auto")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_compose)
@@ -63,9 +66,16 @@ def _cmd_compose(args) -> int:
         cfg = dataclasses.replace(cfg, shadow=dataclasses.replace(cfg.shadow,
                                                                   count=args.shadow_probes))
     estimator = None
-    if args.env is None:
+    if args.env is not None:
+        for flag, value in (("--label", args.label), ("--scene-label", args.scene_label)):
+            if value is not None:
+                raise ValueError(f"{flag} sets up the lighting estimation; with --env the map "
+                                 f"is the light and nothing is estimated")
+    else:
         scene_ply = str(Path(args.scene_run) / "point_cloud.ply")
-        ecfg = EstimateConfig(label=args.label)
+        ecfg = EstimateConfig(label=args.label or "auto",
+                              scene_label=args.scene_label or "default")
+        check_model_files(ecfg)
         backend = backends.default_backend()
 
         def estimator(pos):

@@ -13,7 +13,12 @@ from comgs_dr.eval.lighting_metrics import compare_maps
 from comgs_dr.lighting import backends, envmap, lights
 from comgs_dr.lighting.hdr import area_resize_equirect
 from comgs_dr.stages import train_completion, train_light_head, train_scene_label
-from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light, write_outputs
+from comgs_dr.stages.estimate_light import (
+    EstimateConfig,
+    estimate_light,
+    output_paths,
+    write_outputs,
+)
 
 # ----------------------------------------------------------------------------- estimate-light
 
@@ -43,7 +48,8 @@ def _add_estimate_light(sub) -> None:
                    default="net+sh", help="completion backend (default net+sh: the shipped "
                    "weights, their hole averaged with the SH fill, outdoors the weights' "
                    "luminance in the average's colour; net: the weights alone)")
-    p.add_argument("--weights", metavar="PATH", help="completion-net checkpoint (backend net)")
+    p.add_argument("--weights", metavar="PATH", help="completion-net checkpoint (backends "
+                   "net+sh and net; default: the shipped one)")
     p.add_argument("--net-resolution", type=int, nargs=2, metavar=("H", "W"),
                    help="network input size (default: the size the weights were trained at)")
     p.add_argument("--diffusers-dir", metavar="DIR",
@@ -56,7 +62,19 @@ def _add_estimate_light(sub) -> None:
     p.set_defaults(func=_cmd_estimate_light)
 
 
+def _check_backend_flags(args) -> None:
+    """ValueError for a flag the chosen backend would ignore."""
+    net = args.backend in ("net", "net+sh")
+    for flag, value, applies in (("--weights", args.weights, net),
+                                 ("--net-resolution", args.net_resolution, net),
+                                 ("--diffusers-dir", args.diffusers_dir,
+                                  args.backend == "diffusers")):
+        if value is not None and not applies:
+            raise ValueError(f"{flag} does not apply to --backend {args.backend}")
+
+
 def _estimate_backend(args):
+    _check_backend_flags(args)
     if args.backend in ("net", "net+sh"):
         res = tuple(args.net_resolution) if args.net_resolution else None
         net = backends.load_network_backend(args.weights, res)
@@ -74,6 +92,7 @@ def _cmd_estimate_light(args) -> int:
     if "net_resolution" in kw:
         kw["net_resolution"] = tuple(kw["net_resolution"])
     cfg = EstimateConfig(**kw)
+    output_paths(args.out)                     # a bad --out fails now, not after the work
     r = estimate_light(args.scene, args.at, cfg, _estimate_backend(args))
     paths = write_outputs(r, args.out)
     print(f"coverage {100 * r['coverage']:.1f}%, backend {r['meta']['backend']}, "

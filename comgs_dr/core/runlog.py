@@ -38,6 +38,21 @@ def _clean(rec: dict) -> dict:
     return out
 
 
+def json_safe(x):
+    """``x`` for ``json.dumps(..., allow_nan=False)``: dict keys as strings, tuples as lists,
+    numpy arrays and scalars as Python lists and numbers (``tolist``), non-finite floats as
+    None (JSON has no NaN / Infinity; Python writes them, strict parsers reject them)."""
+    if isinstance(x, dict):
+        return {str(k): json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_safe(v) for v in x]
+    if hasattr(x, "tolist") and not isinstance(x, (str, bytes)):
+        return json_safe(x.tolist())
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
 def record(stage: str, time_s: float, **values) -> dict:
     """One record (``values`` that are not scalars are dropped: the log holds scalars)."""
     return _clean({"stage": str(stage), "time_s": round(float(time_s), 4), **values})

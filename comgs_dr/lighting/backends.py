@@ -380,7 +380,11 @@ class DiffusersBackend(CompletionBackend):
         p = Path(path)
         emb = p / cls.EMBEDDINGS_FILE
         if emb.is_file() and "xi_b" not in kwargs:
-            d = torch.load(emb, map_location="cpu", weights_only=True)
+            try:
+                d = torch.load(emb, map_location="cpu", weights_only=True)
+            except Exception as exc:  # noqa: BLE001 - any decoding failure means a bad file
+                raise ValueError(f"DiffusersBackend: {emb} is not readable "
+                                 f"({completion.torch_load_error(exc)})") from exc
             if not isinstance(d, dict) or not {"xi_b", "xi_d"} <= set(d):
                 raise ValueError(f"DiffusersBackend: {emb} must hold a dict with 'xi_b' and "
                                  f"'xi_d'")

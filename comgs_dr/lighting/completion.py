@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import abc
 import math
+import re
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import NamedTuple
@@ -366,6 +367,15 @@ def save_weights(model: CompletionNet, path) -> Path:
     return path
 
 
+def torch_load_error(exc: Exception) -> str:
+    """Why ``torch.load(weights_only=True)`` refused a file, in one line: its own message goes
+    on to advise ``weights_only=False``, which would run any code a foreign file holds."""
+    text = str(exc).strip()
+    m = re.search(r"WeightsUnpickler error:\s*(.+?)\s*(?:\n\n|$)", text, re.S)
+    reason = m.group(1) if m else (text.splitlines() or [""])[0]
+    return f"{type(exc).__name__}: {' '.join(reason.split())}"[:200]
+
+
 def load_weights(path, config: CompletionConfig | None = None,
                  map_location="cpu") -> CompletionNet:
     """CompletionNet (eval mode) from ``save_weights``. FileNotFoundError if missing;
@@ -377,7 +387,8 @@ def load_weights(path, config: CompletionConfig | None = None,
     try:
         ckpt = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:
-        raise WeightsError(f"{path}: not a readable completion checkpoint ({exc})") from exc
+        raise WeightsError(f"{path}: not a readable completion checkpoint "
+                           f"({torch_load_error(exc)})") from exc
     if not isinstance(ckpt, dict) or ckpt.get("format") != _FORMAT:
         raise WeightsError(f"{path}: not a completion checkpoint (format {_FORMAT!r} expected)")
     if ckpt.get("version") not in SUPPORTED_VERSIONS:

@@ -281,9 +281,20 @@ def _read_checked(p: Path) -> tuple[np.ndarray, dict]:
             with open(p, "rb") as f:
                 if f.read(2) == b"#?":      # Radiance RGBE: Mitsuba crashes on damaged RLE
                     rgbe.check_rgbe(p)
-            arr = np.array(mi.Bitmap(str(p)), copy=True)
+            bmp = mi.Bitmap(str(p))
+            fmt = bmp.component_format()
+            arr = np.array(bmp, copy=True)
     except Exception as e:  # Mitsuba raises RuntimeError with its own wording
         raise ValueError(f"cannot read environment map {p}: {e}") from e
+    else:
+        if p.suffix.lower() != ".exr" and fmt not in (mi.Struct.Type.Float16,
+                                                      mi.Struct.Type.Float32,
+                                                      mi.Struct.Type.Float64):
+            # a PNG / JPEG holds display values (sRGB, 0–255), not radiance: read as
+            # radiance it would light a scene ~250× too bright and without its lights
+            raise ValueError(f"environment map {p} is an integer ({fmt}) image: it holds "
+                             f"display values, not radiance. Give a linear HDR map (.exr or "
+                             f".hdr); a photo's clipped lights cannot be recovered from it")
     if arr.ndim != 3 or arr.shape[2] not in (3, 4) or min(arr.shape[:2]) < 2:
         raise ValueError(f"environment map {p} must be an RGB(A) image of at least 2x2 "
                          f"pixels, got shape {arr.shape}")

@@ -57,6 +57,7 @@ import torch.nn as nn
 
 from comgs_dr.core.colorspace import LUMA, srgb_decode
 from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
+from comgs_dr.lighting.completion import torch_load_error
 from comgs_dr.lighting.hdr import SAT, check_ldr_mask, label_equirect
 from comgs_dr.lighting.sg import render_lobes, sg_integral, sg_sharpness
 
@@ -263,7 +264,8 @@ def load_head(path=DEFAULT_HEAD) -> LightHead | HeadEnsemble:
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any decoding failure means a bad file
-        raise ValueError(f"{path}: not a readable light-head file ({exc})") from exc
+        raise ValueError(f"{path}: not a readable light-head file "
+                         f"({torch_load_error(exc)})") from exc
     if not isinstance(ck, dict) or ck.get("format") != _FORMAT:
         raise ValueError(f"{path}: not a light-head file (format {_FORMAT!r} expected)")
     if ck.get("features") != list(FEATURES):

@@ -110,6 +110,10 @@ def _lighting(names, centres, env, estimator, res, out: Path, timings: dict) -> 
     paths = {}
     if env is not None:
         img, layout = em.read_envmap_file(env)
+        if not (img > 0).any():
+            log.warning("compose: the environment map %s is black: the objects get no light "
+                        "from it, only the indirect light baked into their probes at "
+                        "reconstruction (not relit), and cast no shadow", env)
         oct_map = img if layout == "octahedral" else em.equirect_to_oct_np(img, res)
         for n in names:
             paths[n] = em.write_exr(out / "env" / f"{n}.exr", oct_map, "octahedral")

@@ -61,7 +61,7 @@ from comgs_dr.train import background as bgenv
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EstimateConfig", "LOW_COVERAGE", "load_scene", "sanitize_trace", "backend_input",
+__all__ = ["EstimateConfig", "LOW_COVERAGE", "check_model_files", "load_scene", "sanitize_trace", "backend_input",
            "estimate_light", "write_outputs", "output_paths", "preview_image"]
 
 LOW_COVERAGE = 0.4      # the paper's smallest evaluated coverage (Appendix, Table supp_lgt)
@@ -90,6 +90,8 @@ class EstimateConfig:
     n_lights: int = 3
     light_head: str = "default"     # weights of the light head; "default": the shipped ones
                                     # (skipped with a warning if absent); "none": no head
+    scene_label: str = "default"    # the classifier of label "auto": "default" the shipped
+                                    # one, or a model from ``comgs train-scene-label``
     light_head_rows: int = 256      # the head reads the panorama at most this many rows
                                     # (``head_factor``); 0: no limit
     light_trust_brackets: float = TRUST_BRACKETS  # the brackets' vote on which
@@ -117,6 +119,9 @@ class EstimateConfig:
             raise ValueError(f"EstimateConfig.colour_space must be None, 'srgb' or 'linear', "
                              f"got {self.colour_space!r}")
         self.panorama_config("srgb").validate()          # width, height, max_hits, ...
+        if self.width != 2 * self.height:                  # the map written is an equirect
+            raise ValueError(f"EstimateConfig: the panorama must be 2:1 (an equirect map), got "
+                             f"width {self.width} and height {self.height}")
         if isinstance(self.clipped_max_texels, bool) \
                 or not float(self.clipped_max_texels) >= 0.0:
             raise ValueError(f"EstimateConfig.clipped_max_texels must be >= 0, got "
@@ -209,6 +214,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     """
     cfg = EstimateConfig() if cfg is None else cfg
     cfg.validate()
+    check_model_files(cfg)                      # before the trace, not minutes into it
     t0 = time.perf_counter()
     timings = {}
     if isinstance(scene_or_ply_path, (str, Path)):
@@ -251,7 +257,10 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     sky_seen = hdr.seen_sky_fraction(mask)
     sky_clip = hdr.clipped_sky_fraction(rgb, mask)
     if sky_seen < hdr.SEEN_SKY_WARN:
+        skipped = cfg.background == "none" and _background_dir("auto", scene_or_ply_path)
         fix = ("add views that see the sky, or give the map (compose --env)" if bg_dir is not None
+               else "the run has a learned sky that background 'none' left out: use the "
+               "default background 'auto'" if skipped
                else "if the capture saw the sky, reconstruct with --background env (step 1 "
                "keeps no sky without it); else add sky views or give the map (compose --env)")
         log.warning("estimate_light: the capture saw %.1f%% of the sky (or ceiling) above the "
@@ -268,7 +277,8 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
                     100 * hdr.CLIPPED_SKY_WARN)
 
     t = time.perf_counter()
-    label, p_outdoor = scene_label.resolve_label(cfg.label, rgb, mask)
+    label, p_outdoor = scene_label.resolve_label(
+        cfg.label, rgb, mask, None if cfg.scene_label == "default" else cfg.scene_label)
     if p_outdoor is not None:
         log.info("estimate_light: label 'auto' -> %r (p(outdoor) = %.2f)", label, p_outdoor)
     timings["label"] = time.perf_counter() - t
@@ -319,6 +329,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
             "trace": jsonable(trace["meta"]), "radiance": "linear",
             "layout": {"hdr": "equirect", "oct": "octahedral"}}
     meta["light_head"] = None if head is None else str(cfg.light_head)
+    meta["scene_label_model"] = str(cfg.scene_label) if p_outdoor is not None else None
     meta["light_trust_brackets"] = None if head is None else float(cfg.light_trust_brackets)
     meta["light_head_block"] = f             # the head read the panorama in f×f blocks
     dom = meta["light_dominance"] = light_head.dominance(regions)
@@ -436,6 +447,17 @@ def small_parts(clipped: np.ndarray, max_sr: float) -> np.ndarray:
     keep = area <= max_sr
     keep[0] = False
     return np.where(keep[lab][..., None], clipped, 0.0)
+
+
+def check_model_files(cfg: EstimateConfig) -> None:
+    """FileNotFoundError for a light head or scene-label model that ``cfg`` names and that
+    does not exist (the scene label only matters for label "auto")."""
+    if cfg.light_head not in ("default", "none") and not Path(cfg.light_head).is_file():
+        raise FileNotFoundError(f"estimate_light: light head not found: {cfg.light_head}")
+    if cfg.label == "auto" and cfg.scene_label != "default" \
+            and not Path(cfg.scene_label).is_file():
+        raise FileNotFoundError(f"estimate_light: scene-label model not found: "
+                                f"{cfg.scene_label}")
 
 
 def _load_head(spec: str):

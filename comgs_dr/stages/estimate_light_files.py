@@ -18,18 +18,7 @@ from comgs_dr.lighting import lights as light_head
 __all__ = ["output_paths", "write_outputs", "preview_image", "jsonable"]
 
 
-def jsonable(x):
-    """``x`` with numpy arrays and scalars turned into lists and Python numbers, keys into
-    strings (for ``json.dumps``)."""
-    if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, np.generic):
-        return x.item()
-    return x
+jsonable = runlog.json_safe          # numpy to Python, non-finite floats to None (strict JSON)
 
 
 def _lights_json(lights) -> list[dict]:
@@ -43,6 +32,11 @@ def output_paths(out_path) -> dict:
     p = Path(out_path)
     if p.suffix.lower() != ".exr":
         raise ValueError(f"write_outputs: the output must be an .exr file, got {p}")
+    for d in p.parents:
+        if d.exists() and not d.is_dir():
+            raise ValueError(f"write_outputs: cannot write {p}: {d} is a file, not a folder")
+    if p.is_dir():
+        raise ValueError(f"write_outputs: {p} is a folder; give the .exr file to write")
     stem = p.with_suffix("")
     return {"equirect": p, "oct": Path(f"{stem}_oct.exr"), "json": Path(f"{stem}.json"),
             "preview": Path(f"{stem}_preview.png"), "metrics": Path(f"{stem}.{runlog.LOG_NAME}")}
@@ -61,7 +55,7 @@ def write_outputs(result: dict, out_path) -> dict:
            "light_head_regions": _lights_json([{k: v for k, v in g.items() if k != "region"}
                                                for g in result.get("light_regions", [])]),
            "files": {k: v.name for k, v in paths.items()}}
-    paths["json"].write_text(json.dumps(jsonable(doc), indent=2))
+    paths["json"].write_text(json.dumps(jsonable(doc), indent=2, allow_nan=False))
     runlog.rewrite(paths["metrics"].parent,
                    runlog.part_records("estimate-light", result["timings"],
                                        coverage=float(result["coverage"])),

@@ -62,7 +62,8 @@ HELD_OUT = P.HELD_OUT
 
 @dataclass
 class TrainCompletionConfig:
-    out: Path = DEFAULT_WEIGHTS                # the shipped weights (comgs_dr/lighting/weights)
+    out: Path = Path("out/completion.pt")     # not the shipped DEFAULT_WEIGHTS: pass that
+                                               # path to replace them
     data_dir: Path = Path("out/completion_data")
     maps_dir: Path | None = None           # default: shared/data/hdri beside the checkout
     held_out: tuple = HELD_OUT
@@ -358,7 +359,8 @@ def train(cfg: TrainCompletionConfig, progress: bool = True, command: str | None
 def add_arguments(ap) -> None:
     """The ``comgs train-completion`` options (also ``python -m comgs_dr.stages.train_completion``)."""
     d = TrainCompletionConfig()
-    ap.add_argument("--out", type=Path, default=d.out, help="weights file (default: the shipped one)")
+    ap.add_argument("--out", type=Path, default=d.out, help=f"weights file (default {d.out}; "
+                    f"the shipped one, {DEFAULT_WEIGHTS}, is replaced only when named here)")
     ap.add_argument("--data-dir", type=Path, default=d.data_dir, help="training-data cache folder")
     ap.add_argument("--maps", type=Path, default=None, help="folder of .hdr/.exr maps "
                     "(default: shared/data/hdri)")

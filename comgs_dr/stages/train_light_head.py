@@ -49,7 +49,7 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class TrainLightHeadConfig:
-    out: Path = L.DEFAULT_HEAD
+    out: Path = Path("out/light_head.pt")   # not the shipped L.DEFAULT_HEAD unless named
     data_dir: Path = Path("out/light_head_data")
     maps_dir: Path | None = None
     held_out: tuple = P.HELD_OUT
@@ -263,7 +263,9 @@ def train(cfg: TrainLightHeadConfig, progress: bool = True, command: str = "") -
 
 def add_arguments(ap) -> None:
     d = TrainLightHeadConfig()
-    ap.add_argument("--out", type=Path, default=d.out, help="weights (default: the shipped ones)")
+    ap.add_argument("--out", type=Path, default=d.out, help=f"weights (default {d.out}; the "
+                    f"shipped ones, {L.DEFAULT_HEAD}, are replaced only when named here; "
+                    f"use yours with estimate-light --light-head)")
     ap.add_argument("--data-dir", type=Path, default=d.data_dir)
     ap.add_argument("--maps", type=Path, default=None, help="folder of .hdr/.exr maps")
     ap.add_argument("--held-out", nargs="*", default=list(d.held_out))

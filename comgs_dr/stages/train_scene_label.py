@@ -34,7 +34,7 @@ OUTDOOR, INDOOR = 1, 0
 
 @dataclass
 class TrainSceneLabelConfig:
-    out: Path = S.DEFAULT_MODEL
+    out: Path = Path("out/scene_label.json")   # not the shipped S.DEFAULT_MODEL unless named
     maps_dir: Path | None = None
     held_out: tuple = P.HELD_OUT
     heights: tuple = (64, 256)
@@ -161,7 +161,9 @@ def train(cfg: TrainSceneLabelConfig, progress: bool = True, command: str = "") 
 
 def add_arguments(ap) -> None:
     d = TrainSceneLabelConfig()
-    ap.add_argument("--out", type=Path, default=d.out, help="model (default: the shipped one)")
+    ap.add_argument("--out", type=Path, default=d.out, help=f"model (default {d.out}; the "
+                    f"shipped one, {S.DEFAULT_MODEL}, is replaced only when named here; use "
+                    f"yours with estimate-light / compose --scene-label)")
     ap.add_argument("--maps", type=Path, default=None, help="folder of .hdr/.exr maps")
     ap.add_argument("--held-out", nargs="*", default=list(d.held_out))
     ap.add_argument("--draws", type=int, default=d.draws_real, help="draws per real map and size")
