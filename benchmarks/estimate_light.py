@@ -30,7 +30,7 @@ def main(argv=None):
     from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light
     from comgs_dr.surfels.scene import gbuffer_scene
     methods = {"net": backends.load_network_backend(), "push_pull": backends.FillBackend("push_pull")}
-    cfg = EstimateConfig(width=a.width, height=a.width // 2, exclude_radius=0.1)
+    cfg = EstimateConfig(width=a.width // 2 * 2, height=a.width // 2, exclude_radius=0.1)
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, python "
           f"{platform.python_version()}; trace {a.width}x{a.width // 2}, K={cfg.max_hits}\n")
     cols = ("trace", "completion", "fusion", "octahedral", "lights", "total")

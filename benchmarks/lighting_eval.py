@@ -136,11 +136,6 @@ def list_maps(folder) -> list[Path]:
     maps = sorted(f for f in p.iterdir() if f.suffix.lower() in (".hdr", ".exr"))
     if not maps:
         raise FileNotFoundError(f"--maps: no .hdr/.exr file in {p}")
-    stems = [f.stem for f in maps]
-    twins = sorted({f.name for f in maps if stems.count(f.stem) > 1})
-    if twins:           # results, --labels and the model cards name maps by stem
-        raise ValueError(f"--maps: maps share a name apart from the extension: "
-                         f"{', '.join(twins)}; rename one of each")
     return maps
 
 
@@ -156,6 +151,17 @@ def select_maps(args) -> tuple[list[Path], dict]:
         if not maps:
             raise FileNotFoundError(f"--held-out: none of {pano.HELD_OUT} in {args.maps}")
         labels = {p.stem: pano.label_of(p.stem) for p in maps} | labels
+    stems = [f.stem for f in maps]
+    twins = sorted({f.name for f in maps if stems.count(f.stem) > 1})
+    if twins:           # results, --labels and the model cards name maps by stem
+        raise ValueError(f"--maps: maps share a name apart from the extension: "
+                         f"{', '.join(twins)}; rename one of each")
+    if args.scene_label is not None:
+        if not Path(args.scene_label).is_file():
+            raise FileNotFoundError(f"--scene-label: no such file {args.scene_label}")
+        if not any(str(labels.get(p.stem, args.default_label)) == "auto" for p in maps):
+            raise ValueError("--scene-label applies to maps labelled auto, and none is "
+                             "(--labels / --default-label / --held-out's names)")
     return maps, labels
 
 

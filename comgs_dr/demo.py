@@ -252,7 +252,8 @@ def run_demo(cfg: DemoConfig) -> dict:
         "lighting_vs_map": light_err_map,
         "edit_seconds": edit["timings"],
     }
-    (out / "demo.json").write_text(json.dumps(summary, indent=1))
+    (out / "demo.json").write_text(json.dumps(runlog.json_safe(summary), indent=1,
+                                              allow_nan=False))
     runlog.rewrite(out, runlog.part_records("demo", times))
     report.write_report(out, out / "report.html", title="comgs demo")
     summary["report"] = str(out / "report.html")

@@ -465,11 +465,11 @@ def test_config_and_default_backend_errors(params, tmp_path, monkeypatch):
         with pytest.raises(FileNotFoundError, match=what):
             estimate_light(tmp_path / "missing.ply", POS, EstimateConfig(**SMALL, **kw),
                            backends.FillBackend("mean"))
-    # the scene-label model only matters for label "auto"
-    r = estimate_light(_scene(params), POS, EstimateConfig(
-        label="indoor", light_head="none", scene_label=str(tmp_path / "m.json"), **SMALL),
-        backends.FillBackend("mean"))
-    assert r["meta"]["scene_label_model"] is None
+    # a classifier with a fixed label is refused, not ignored
+    with pytest.raises(ValueError, match="applies to label 'auto' only"):
+        estimate_light(_scene(params), POS, EstimateConfig(
+            label="indoor", scene_label=str(tmp_path / "m.json"), **SMALL),
+            backends.FillBackend("mean"))
 
 
 def test_small_parts_keeps_only_small_clipped_components():
@@ -519,10 +519,11 @@ def test_compose_cli_reports_each_placements_auto_label(monkeypatch, tmp_path, c
     ``estimate_light`` with --label and prints the classifier's answer per placement."""
     from comgs_dr.cli import composition as C
     from comgs_dr.cli import main
-    calls = []
+    calls, heads = [], []
 
     def fake_estimate(ply, pos, cfg, backend):
         calls.append(cfg.label)
+        heads.append(cfg.light_head)
         return {"hdr": np.ones((2, 4, 3), np.float32),
                 "meta": {"label": "indoor", "p_outdoor": 0.12 if cfg.label == "auto" else None}}
 
@@ -543,8 +544,15 @@ def test_compose_cli_reports_each_placements_auto_label(monkeypatch, tmp_path, c
         capsys.readouterr().out
     assert main(args + ["--label", "outdoor"]) == 0
     assert calls[-1] == "outdoor" and "label auto" not in capsys.readouterr().out
-    for extra in (["--label", "indoor"], ["--scene-label", str(tmp_path / "m.json")]):
+    assert main(args + ["--light-head", "none"]) == 0 and heads[-1] == "none"
+    assert heads[0] == "default"
+    assert main(args + ["--light-head", str(tmp_path / "h.pt")]) == 2         # missing head
+    assert "light head not found" in capsys.readouterr().err
+    for extra in (["--label", "indoor"], ["--scene-label", str(tmp_path / "m.json")],
+                  ["--weights", str(tmp_path / "w.pt")], ["--light-head", "none"]):
         assert main(args + ["--env", str(tmp_path / "env.exr")] + extra) == 2
         assert "with --env the map is the light" in capsys.readouterr().err
     assert main(args + ["--scene-label", str(tmp_path / "m.json")]) == 2      # missing model
     assert "scene-label model not found" in capsys.readouterr().err
+    assert main(args + ["--label", "indoor", "--scene-label", str(tmp_path / "m.json")]) == 2
+    assert "applies to label 'auto' only" in capsys.readouterr().err

@@ -166,6 +166,11 @@ def test_held_out_selects_the_never_trained_maps(tmp_path, pano_data, variant, c
                          "--out", str(tmp_path / "fig"), "--examples", "0"])
     assert out["records"] and {r["label"] for r in out["records"]} == {"indoor"}
     assert all(r["p_outdoor"] < 1e-6 for r in out["records"])
+    with pytest.raises(FileNotFoundError, match="--scene-label: no such file"):
+        _bench().main(["--maps", str(maps), "--quick", "--scene-label", str(tmp_path / "x.json")])
+    with pytest.raises(ValueError, match="none is"):         # no map is labelled auto
+        _bench().main(["--maps", str(maps), "--quick", "--default-label", "indoor",
+                       "--scene-label", str(path)])
     write_exr(maps / "trained_on.hdr", sky, "equirect")       # "trained_on" twice
     with pytest.raises(ValueError, match="trained_on.exr, trained_on.hdr"):
         _bench().main(["--maps", str(maps), "--quick"])

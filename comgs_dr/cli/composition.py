@@ -43,6 +43,12 @@ def _add_compose(sub) -> None:
     p.add_argument("--label", choices=("auto", "unknown", "indoor", "outdoor"), default=None,
                    help="scene label for the lighting estimation (default auto: classified "
                    "from the traced panorama; not with --env)")
+    p.add_argument("--weights", metavar="W.pt", default=None,
+                   help="completion-net checkpoint of the estimation (default: the shipped one; "
+                   "not with --env)")
+    p.add_argument("--light-head", metavar="HEAD.pt", default=None,
+                   help="light head of the estimation: a file, or none (default: the shipped "
+                   "one; not with --env)")
     p.add_argument("--scene-label", metavar="M.json", default=None,
                    help="the classifier of label auto (default: the shipped one; e.g. from "
                    "`comgs train-scene-label`; not with --env)")
@@ -67,16 +73,20 @@ def _cmd_compose(args) -> int:
                                                                   count=args.shadow_probes))
     estimator = None
     if args.env is not None:
-        for flag, value in (("--label", args.label), ("--scene-label", args.scene_label)):
+        for flag, value in (("--label", args.label), ("--scene-label", args.scene_label),
+                            ("--weights", args.weights), ("--light-head", args.light_head)):
             if value is not None:
                 raise ValueError(f"{flag} sets up the lighting estimation; with --env the map "
                                  f"is the light and nothing is estimated")
     else:
         scene_ply = str(Path(args.scene_run) / "point_cloud.ply")
         ecfg = EstimateConfig(label=args.label or "auto",
-                              scene_label=args.scene_label or "default")
+                              scene_label=args.scene_label or "default",
+                              light_head=args.light_head or "default")
+        ecfg.validate()
         check_model_files(ecfg)
-        backend = backends.default_backend()
+        backend = (backends.default_backend() if args.weights is None else
+                   backends.net_sh_blend(backends.load_network_backend(args.weights)))
 
         def estimator(pos):
             r = estimate_light(scene_ply, pos, ecfg, backend)

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from comgs_dr import set_variant
+from comgs_dr.core import runlog
 from comgs_dr.core.config import add_config_arguments, config_overrides
 from comgs_dr.eval.lighting_metrics import compare_maps
 from comgs_dr.lighting import backends, envmap, lights
@@ -161,7 +162,7 @@ def _cmd_compare_light(args) -> int:
     w = max(len(r[0]) for r in rows)
     print("\n".join(f"{a:<{w}}  {b}" for a, b in rows))
     if args.json:
-        Path(args.json).write_text(json.dumps(m, indent=1))
+        Path(args.json).write_text(json.dumps(runlog.json_safe(m), indent=1, allow_nan=False))
     if args.png:
         from comgs_dr.demo import envmap_figure
         envmap_figure(gt, est).save(args.png)

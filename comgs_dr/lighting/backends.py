@@ -110,9 +110,10 @@ def load_network_backend(path=None, resolution: tuple[int, int] | None = None
     p = Path(DEFAULT_WEIGHTS if path is None else path)
     if not p.is_file():
         raise FileNotFoundError(
-            f"completion weights not found: {p}. Train them with `comgs train-completion` "
-            f"(or pass a checkpoint saved by comgs_dr.lighting.completion.save_weights), or "
-            f"use a non-learned backend (--backend push_pull)")
+            f"completion weights not found: {p}. Train them with `comgs train-completion "
+            f"--out {p}` (or pass a checkpoint saved by comgs_dr.lighting.completion."
+            f"save_weights, e.g. --weights out/completion.pt), or use a non-learned backend "
+            f"(--backend push_pull)")
     return NetworkBackend(completion.load_weights(p), resolution)
 
 

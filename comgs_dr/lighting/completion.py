@@ -372,8 +372,9 @@ def torch_load_error(exc: Exception) -> str:
     on to advise ``weights_only=False``, which would run any code a foreign file holds."""
     text = str(exc).strip()
     m = re.search(r"WeightsUnpickler error:\s*(.+?)\s*(?:\n\n|$)", text, re.S)
-    reason = m.group(1) if m else (text.splitlines() or [""])[0]
-    return f"{type(exc).__name__}: {' '.join(reason.split())}"[:200]
+    reason = " ".join((m.group(1) if m else (text.splitlines() or [""])[0]).split())
+    reason = reason.split(". ")[0]             # its first sentence: the advice comes after
+    return f"{type(exc).__name__}: {reason}"
 
 
 def load_weights(path, config: CompletionConfig | None = None,

@@ -269,7 +269,8 @@ def load_head(path=DEFAULT_HEAD) -> LightHead | HeadEnsemble:
     if not isinstance(ck, dict) or ck.get("format") != _FORMAT:
         raise ValueError(f"{path}: not a light-head file (format {_FORMAT!r} expected)")
     if ck.get("features") != list(FEATURES):
-        raise ValueError(f"{path}: made for other features; retrain with comgs train-light-head")
+        raise ValueError(f"{path}: made for other features; retrain with comgs "
+                         f"train-light-head --out {path}")
     heads = []
     for sd in [ck["state_dict"], *ck.get("members", [])]:
         heads.append(LightHead(len(FEATURES), int(ck["hidden"])))

@@ -211,7 +211,7 @@ def load_model(path=DEFAULT_MODEL) -> LabelModel:
         raise ValueError(f"{path}: not a scene-label model (format {_FORMAT!r} expected)")
     if tuple(d.get("features", ())) != FEATURES:
         raise ValueError(f"{path}: made for other features; retrain with "
-                         f"comgs train-scene-label")
+                         f"comgs train-scene-label --out {path}")
     d["features"] = FEATURES
     return LabelModel(**d)
 

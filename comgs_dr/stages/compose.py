@@ -294,6 +294,7 @@ def compose(scene_run, objects: dict, placement, out, env=None, estimator=None,
                          "reused": [h for h in cache.hits if h.startswith("occ_")]},
                "rays_per_probe": res * res * cfg.shadow.supersample ** 2,
                "recomputed": [m for m in cache.misses if not m.startswith("occ_")]}
-    atomic_write_text(out / "edit.json", json.dumps(summary, indent=1))
+    atomic_write_text(out / "edit.json", json.dumps(runlog.json_safe(summary), indent=1,
+                                                     allow_nan=False))
     runlog.rewrite(out, runlog.part_records("compose", timings, shadow_probes=shadow.count))
     return summary

@@ -106,6 +106,9 @@ class EstimateConfig:
         if self.label not in scene_label.LABEL_CHOICES:
             raise ValueError(f"EstimateConfig.label must be one of "
                              f"{list(scene_label.LABEL_CHOICES)}, got {self.label!r}")
+        if self.scene_label != "default" and self.label != "auto":
+            raise ValueError(f"EstimateConfig.scene_label (a classifier) applies to label "
+                             f"'auto' only; the label is {self.label!r}")
         evs = [float(e) for e in self.evs]
         if not evs or 0.0 not in evs or any(e > 0 or not np.isfinite(e) for e in evs) \
                 or len(set(evs)) != len(evs):
@@ -325,7 +328,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
             "evs": list(evs), "backend": _backend_name(backend), "colour_space": space,
             "coverage": cov, "seen_sky_fraction": sky_seen,
             "clipped_sky_fraction": sky_clip, "nonfinite_pixels": n_bad,
-            "saturation_limit": hdr.saturation_limit(evs), "config": jsonable(asdict(cfg)),
+            "saturation_limit": hdr.saturation_limit(evs), "config": _config_dict(cfg),
             "trace": jsonable(trace["meta"]), "radiance": "linear",
             "layout": {"hdr": "equirect", "oct": "octahedral"}}
     meta["light_head"] = None if head is None else str(cfg.light_head)
@@ -449,13 +452,18 @@ def small_parts(clipped: np.ndarray, max_sr: float) -> np.ndarray:
     return np.where(keep[lab][..., None], clipped, 0.0)
 
 
+def _config_dict(cfg: EstimateConfig) -> dict:
+    """``cfg`` as plain Python values (tuples as lists) that ``EstimateConfig(**d)`` takes
+    back; an infinite ``clipped_max_texels`` stays inf here and is written as null."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(cfg).items()}
+
+
 def check_model_files(cfg: EstimateConfig) -> None:
     """FileNotFoundError for a light head or scene-label model that ``cfg`` names and that
-    does not exist (the scene label only matters for label "auto")."""
+    does not exist."""
     if cfg.light_head not in ("default", "none") and not Path(cfg.light_head).is_file():
         raise FileNotFoundError(f"estimate_light: light head not found: {cfg.light_head}")
-    if cfg.label == "auto" and cfg.scene_label != "default" \
-            and not Path(cfg.scene_label).is_file():
+    if cfg.scene_label != "default" and not Path(cfg.scene_label).is_file():
         raise FileNotFoundError(f"estimate_light: scene-label model not found: "
                                 f"{cfg.scene_label}")
 

@@ -31,6 +31,7 @@ import mitsuba as mi
 import numpy as np
 from tqdm.auto import tqdm
 
+from comgs_dr.core import runlog
 from comgs_dr.core.cameras import camera_rays
 from comgs_dr.core.colorspace import srgb_encode
 from comgs_dr.core.hostarray import to_jit
@@ -248,5 +249,6 @@ def export_mesh(run_dir, out, cfg: MeshConfig = MeshConfig(), progress: bool = T
                "views": len(views), "seconds": round(time.perf_counter() - t0, 2),
                "extract_seconds": round(t_extract, 2), **extra,
                "config": dataclasses.asdict(cfg)}
-    Path(str(out) + ".json").write_text(json.dumps(summary, indent=1))
+    Path(str(out) + ".json").write_text(json.dumps(runlog.json_safe(summary), indent=1,
+                                                   allow_nan=False))
     return summary

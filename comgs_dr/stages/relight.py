@@ -28,7 +28,7 @@ import mitsuba as mi
 import numpy as np
 from tqdm import tqdm
 
-from comgs_dr.core import exr
+from comgs_dr.core import exr, runlog
 from comgs_dr.core.cameras import camera_rays
 from comgs_dr.core.colorspace import display_composite, srgb_encode
 from comgs_dr.data.images import write_png8
@@ -193,5 +193,6 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
     res.update(envmap=str(env_path), views=len(vs), indirect=use_indirect, visibility=kind,
                rays=rays, sampling=sampling, envmap_res=scene.environment().res,
                edit=None if edit is None else dataclasses.asdict(edit), per_view=per_view)
-    ck.atomic_write_text(out / "metrics.json", json.dumps(res, indent=1))
+    ck.atomic_write_text(out / "metrics.json", json.dumps(runlog.json_safe(res), indent=1,
+                                                           allow_nan=False))
     return res

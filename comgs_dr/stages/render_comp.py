@@ -112,5 +112,6 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
     if gts:
         summary["psnr"] = float(np.mean([f["psnr"] for f in frames]))
         summary["ssim"] = float(np.mean([f["ssim"] for f in frames]))
-        atomic_write_text(comp_dir / f"metrics_{variant}.json", json.dumps(summary, indent=1))
+        atomic_write_text(comp_dir / f"metrics_{variant}.json", json.dumps(runlog.json_safe(summary), indent=1,
+                                      allow_nan=False))
     return summary

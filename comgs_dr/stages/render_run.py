@@ -11,7 +11,7 @@ import mitsuba as mi
 import numpy as np
 from tqdm import tqdm
 
-from comgs_dr.core import exr
+from comgs_dr.core import exr, runlog
 from comgs_dr.core.cameras import camera_rays
 from comgs_dr.core.colorspace import srgb_decode
 from comgs_dr.core.hostarray import to_jit
@@ -110,5 +110,6 @@ def render_run(run_dir, views: str = "test", progress: bool = True, max_hits: in
     keys = [k for k in per_view[0] if k != "view"]
     summary = {k: float(np.nanmean([r[k] for r in per_view if k in r])) for k in keys}
     result = {**summary, "views": len(vs), "surfels": params.count, "per_view": per_view}
-    ck.atomic_write_text(run_dir / f"metrics_{views}.json", json.dumps(result, indent=1))
+    ck.atomic_write_text(run_dir / f"metrics_{views}.json", json.dumps(runlog.json_safe(result), indent=1,
+                                                                     allow_nan=False))
     return result

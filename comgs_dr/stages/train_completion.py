@@ -130,7 +130,8 @@ def _load_checkpoint(cfg) -> dict | None:
     try:
         state = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - any decoding failure means a bad file
-        raise ValueError(f"checkpoint {p} is unreadable ({e}); delete it to start over") from e
+        raise ValueError(f"checkpoint {p} is unreadable ({C.torch_load_error(e)}); delete it "
+                         f"to start over") from e
     if not isinstance(state, dict) or state.get("format") != "comgs_dr.completion_train/1":
         raise ValueError(f"checkpoint {p} is not a train-completion checkpoint")
     mine = _config_key(cfg)
