@@ -61,8 +61,8 @@ from comgs_dr.train import background as bgenv
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EstimateConfig", "LOW_COVERAGE", "check_model_files", "load_scene", "sanitize_trace", "backend_input",
-           "estimate_light", "write_outputs", "output_paths", "preview_image"]
+__all__ = ["EstimateConfig", "LOW_COVERAGE", "check_model_files", "load_scene", "sanitize_trace",
+           "backend_input", "estimate_light", "write_outputs", "output_paths", "preview_image"]
 
 LOW_COVERAGE = 0.4      # the paper's smallest evaluated coverage (Appendix, Table supp_lgt)
 
