@@ -204,7 +204,7 @@ def run_demo(cfg: DemoConfig) -> dict:
     backend = backends.default_backend()
     scene_ply = str(scene_run / "point_cloud.ply")
 
-    def estimator(pos):
+    def estimator(pos, name):
         estimated["position"] = np.asarray(pos, np.float64)
         estimated[OBJECT] = estimate_light(scene_ply, pos, EstimateConfig(label="outdoor"), backend)
         return estimated[OBJECT]["hdr"]

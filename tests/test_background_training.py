@@ -230,6 +230,30 @@ def test_capture_maps_record_clipped_rays(sky_scene, trained):
     assert len(none["directions"]) == 0
     with pytest.raises(ValueError, match="pixels"):
         bgenv.capture_maps(sc, integ, [0], 16, [np.zeros((3, 3, 3))])
+    # transparent pixels show no sky: alpha 0 everywhere -> nothing observed, nothing recorded
+    hw = v.image.shape[:2]
+    clear, rec0 = bgenv.capture_maps(sc, integ, [0], 16, [img.reshape(v.image.shape)],
+                                     masks=[np.zeros(hw)])
+    assert clear.max() == 0.0 and len(rec0["directions"]) == 0
+    half, _ = bgenv.capture_maps(sc, integ, [0], 16, masks=[np.full(hw, 0.5)])
+    np.testing.assert_allclose(half, 0.5 * obs)
+    same, _ = bgenv.capture_maps(sc, integ, [0], 16, masks=[None])
+    assert np.array_equal(same, obs)
+    with pytest.raises(ValueError, match="mask 0"):
+        bgenv.capture_maps(sc, integ, [0], 16, masks=[np.zeros((3, 3))])
+
+
+def test_transparent_fraction():
+    """The share of training pixels with alpha < ½ (reconstruct warns on it with env)."""
+    from comgs_dr.stages.reconstruct import transparent_fraction
+    from types import SimpleNamespace as NS
+    img = np.zeros((4, 5, 3))
+    a = np.ones((4, 5))
+    a[:2] = 0.0                                                      # 10 of 20 pixels clear
+    a[2, 0] = 0.5                                                    # half covered: not clear
+    views = [NS(image=img, mask=a), NS(image=img, mask=None)]
+    assert transparent_fraction(views) == pytest.approx(10 / 40)
+    assert transparent_fraction([NS(image=img, mask=None)]) == 0.0
 
 
 def test_pixel_radius_is_the_equal_area_disc():

@@ -269,8 +269,9 @@ def test_light_head_restores_clipped_power(params, tmp_path):
     # the preview's eighth panel paints the head's regions in their action's colour
     from PIL import Image
     im = np.asarray(Image.open(paths["preview"]).convert("RGB"), np.float64) / 255
-    assert im.shape[:2] == (4 * (H + 16), 2 * W)
-    panel = im[3 * (H + 16) + 16:, W:]                       # row 4, column 2
+    bar = im.shape[0] // 4 - H                                # titles wrapped to the panel
+    assert im.shape[:2] == (4 * (H + bar), 2 * W) and bar >= 16
+    panel = im[3 * (H + bar) + bar:, W:]                     # row 4, column 2
     orange = np.abs(panel - np.array(lights.ACTION_RGB["added"])).max(-1) < 0.05
     union = np.any([g["region"] for g in on["light_regions"]], 0)          # [H, W]
     assert union.any() and not (orange & ~union).any()      # only the regions are painted
@@ -309,7 +310,8 @@ def test_write_outputs_and_reload(result, tmp_path):
     assert doc["files"]["oct"] == "env_oct.exr"
     from PIL import Image
     im = Image.open(paths["preview"])
-    assert im.size == (2 * W, 4 * (H + 16))                # 7 panels, two per row
+    bar = im.size[1] // 4 - H                                # 7 panels, two per row
+    assert im.size == (2 * W, 4 * (H + bar)) and (bar - 4) % 12 == 0
     with pytest.raises(ValueError, match=r"\.exr"):
         write_outputs(result, tmp_path / "env.png")
     (tmp_path / "afile").write_text("x")
@@ -341,6 +343,9 @@ def test_cli_on_ply(params, tiny_weights, tmp_path, capsys):
     assert out.is_file() and (tmp_path / "env_oct.exr").is_file()
     doc = json.loads((tmp_path / "env.json").read_text())
     assert doc["meta"]["source"] == str(ply) and doc["meta"]["colour_space"] == "srgb"
+    hot = [l["above_white"] for l in doc["lights"]]          # lights, or bright surfaces
+    assert hot and all(h == (max(l["mean_radiance"]) > 1.0) for h, l in zip(hot, doc["lights"]))
+    assert f"{len(hot)} brightest region(s), {sum(hot)} of them above the EV-0 white" in text
     lines = [l for l in text.splitlines() if l.startswith("clipped region ")]
     assert len(lines) == len(doc["light_head_regions"]) >= 1        # the white window
     assert all(l.endswith(("(added)", "(reduced)", "(unchanged)")) for l in lines)
@@ -528,18 +533,26 @@ def test_compose_cli_reports_each_placements_auto_label(monkeypatch, tmp_path, c
                 "meta": {"label": "indoor", "p_outdoor": 0.12 if cfg.label == "auto" else None}}
 
     def fake_compose(scene_run, objects, placement, out, env, estimator, cfg, progress):
-        assert env is None and estimator([0.5, 0.25, 0.0]).shape == (2, 4, 3)
+        assert env is None and estimator([0.5, 0.25, 0.0], "a").shape == (2, 4, 3)
         return {"timings": dict.fromkeys(("lighting", "probe_placement", "occlusion_tracing",
                                           "total"), 0.0),
                 "probes": {"shadow": 0}, "pairs": {"traced": [], "reused": [], "culled": []}}
 
+    written = []
+
+    def fake_write(r, path):                     # each estimate keeps its own files
+        written.append(path)
+        return {"json": path.with_suffix(".json"), "preview": path.with_name("p.png")}
+
     monkeypatch.setattr(C, "estimate_light", fake_estimate)
+    monkeypatch.setattr(C, "write_outputs", fake_write)
     monkeypatch.setattr(C, "compose", fake_compose)
     monkeypatch.setattr(C.backends, "default_backend", lambda **kw: None)
     args = ["compose", str(tmp_path / "scene"), "--object", f"a={tmp_path / 'obj'}",
             "--placement", str(tmp_path / "p.json"), "--out", str(tmp_path / "out"), "--quiet"]
     assert main(args) == 0
     assert calls == ["auto"]
+    assert written == [tmp_path / "out" / "env" / "a_estimate" / "env.exr"]
     assert "lighting at [0.5, 0.25, 0.0]: label auto -> indoor (p(outdoor) 0.12)" in \
         capsys.readouterr().out
     assert main(args + ["--label", "outdoor"]) == 0
@@ -556,3 +569,16 @@ def test_compose_cli_reports_each_placements_auto_label(monkeypatch, tmp_path, c
     assert "scene-label model not found" in capsys.readouterr().err
     assert main(args + ["--label", "indoor", "--scene-label", str(tmp_path / "m.json")]) == 2
     assert "applies to label 'auto' only" in capsys.readouterr().err
+
+
+def test_preview_titles_wrap_within_their_panel():
+    from PIL import ImageFont
+
+    from comgs_dr.stages.estimate_light_files import _wrap
+    font = ImageFont.load_default()
+    text = "light head: 3 clipped region(s); added 2 (orange), reduced 1 (cyan)"
+    for width in (60, 120, 250, 2000):
+        lines = _wrap(text, font, width)
+        assert " ".join(lines) == text                         # nothing dropped
+        assert all(font.getlength(l) <= width or " " not in l for l in lines)
+    assert len(_wrap(text, font, 2000)) == 1 and len(_wrap(text, font, 60)) > 3

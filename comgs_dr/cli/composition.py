@@ -10,7 +10,12 @@ from comgs_dr import set_variant
 from comgs_dr.lighting import backends
 from comgs_dr.stages.compose import PRESETS as COMPOSE_PRESETS
 from comgs_dr.stages.compose import compose
-from comgs_dr.stages.estimate_light import EstimateConfig, check_model_files, estimate_light
+from comgs_dr.stages.estimate_light import (
+    EstimateConfig,
+    check_model_files,
+    estimate_light,
+    write_outputs,
+)
 from comgs_dr.stages.render_comp import VARIANTS as RENDER_VARIANTS
 from comgs_dr.stages.render_comp import render_comp
 from comgs_dr.surfels.edit import parse_material_spec
@@ -88,11 +93,14 @@ def _cmd_compose(args) -> int:
         backend = (backends.default_backend() if args.weights is None else
                    backends.net_sh_blend(backends.load_network_backend(args.weights)))
 
-        def estimator(pos):
+        def estimator(pos, name):
             r = estimate_light(scene_ply, pos, ecfg, backend)
+            at = np.round(np.asarray(pos, float), 3).tolist()
             if r["meta"].get("p_outdoor") is not None:       # each placement is classified
-                print(f"lighting at {np.round(np.asarray(pos, float), 3).tolist()}: label "
+                print(f"lighting at {at}: label "
                       f"auto -> {r['meta']['label']} (p(outdoor) {r['meta']['p_outdoor']:.2f})")
+            paths = write_outputs(r, Path(args.out) / "env" / f"{name}_estimate" / "env.exr")
+            print(f"lighting of {name!r} at {at}: {paths['json']}, {paths['preview']}")
             return r["hdr"]
     s = compose(args.scene_run, objects, args.placement, args.out, env=args.env,
                 estimator=estimator, cfg=cfg, progress=not args.quiet)
@@ -145,7 +153,8 @@ def _cmd_render_comp(args) -> int:
         res = args.res[0] if len(args.res) == 1 else tuple(args.res)
     s = render_comp(args.comp_dir, args.cameras, args.variant, args.gt_dir, mats, res,
                     args.rays, progress=not args.quiet)
-    line = f"{s['frames']} frames ({s['variant']}), {s['frame_seconds']:.3f} s/frame"
+    line = (f"{s['frames']} frames ({s['variant']}), first {s['first_frame_seconds']:.2f} s "
+            f"(kernel compilation included), then {s['frame_seconds']:.3f} s/frame (median)")
     if "psnr" in s:
         line += f", PSNR {s['psnr']:.2f} dB, SSIM {s['ssim']:.4f}"
     print(line + f"; renders in {s['renders']}")

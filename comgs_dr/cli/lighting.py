@@ -96,8 +96,10 @@ def _cmd_estimate_light(args) -> int:
     output_paths(args.out)                     # a bad --out fails now, not after the work
     r = estimate_light(args.scene, args.at, cfg, _estimate_backend(args))
     paths = write_outputs(r, args.out)
+    hot = sum(bool(l.get("above_white")) for l in r["lights"])
     print(f"coverage {100 * r['coverage']:.1f}%, backend {r['meta']['backend']}, "
-          f"{len(r['lights'])} light(s), peak radiance {float(r['hdr'].max()):.3g}")
+          f"{len(r['lights'])} brightest region(s), {hot} of them above the EV-0 white level "
+          f"(lights), peak radiance {float(r['hdr'].max()):.3g}")
     if r["meta"].get("p_outdoor") is not None:
         print(f"label auto -> {r['meta']['label']} (p(outdoor) {r['meta']['p_outdoor']:.2f})")
     for i, g in enumerate(r.get("light_regions", [])):     # what the light head did

@@ -20,6 +20,7 @@ object re-traces only the pairs it is part of.
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import drjit as dr
@@ -32,6 +33,8 @@ from comgs_dr.core.similarity import Similarity
 from comgs_dr.sops.bake import bake
 from comgs_dr.sops.placement import farthest_points, query_radius
 from comgs_dr.sops.probes import ProbeSet
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -76,6 +79,11 @@ def shadow_region_probes(points, normals, lo, hi, cfg: ShadowConfig = ShadowConf
                          f"inside its region {blo.round(3).tolist()}–{bhi.round(3).tolist()} "
                          f"({int(inside.sum())} points inside, none facing it); is the "
                          f"placement inside the reconstructed scene?")
+    if len(keep) < cfg.count:
+        log.warning("shadow probes of %r: %d of the %d asked; only %d scene surface points "
+                    "(depth fused from the training views) face the object inside its region: "
+                    "the shadow there is sampled more coarsely", name, len(keep), cfg.count,
+                    len(keep))
     idx = keep[farthest_points(points[keep], cfg.count, seed)]
     pts, nrm = points[idx], normals[idx]
     return ProbeSet(positions=pts + cfg.offset_frac * size * nrm, normals=nrm, res=cfg.res,

@@ -2,10 +2,12 @@
 
 Inputs: a step-1 scene run, one step-2 object run per object, placements
 (``transform.json``) and the lighting (one equirect/octahedral map for every object, or an
-``estimator(position) -> equirect radiance`` run at each object's centre, e.g.
+``estimator(position, name) -> equirect radiance`` run at each object's centre, e.g.
 ``comgs estimate-light``). Output, in ``COMP_DIR``:
 
-* ``env/<name>.exr`` — octahedral map lighting each object;
+* ``env/<name>.exr`` — octahedral map lighting each object (``comgs compose`` without
+  ``--env`` also keeps each estimate's own files, as ``comgs estimate-light`` writes them, in
+  ``env/<name>_estimate/``: env.json, the preview, the equirect map);
 * ``probes/<name>.npz`` — the object's own SOPs placed in the world
   (:func:`~comgs_dr.sops.occlusion.transform_probes`), occlusion by the other objects added;
 * ``shadow_probes.npz`` — shadow-region probes on the scene around every object with the
@@ -120,7 +122,7 @@ def _lighting(names, centres, env, estimator, res, out: Path, timings: dict) -> 
         source = {"file": str(Path(env).resolve()), "layout": layout}
     elif estimator is not None:
         for n in names:
-            rad = np.asarray(estimator(np.asarray(centres[n])), np.float64)     # [H, W, 3]
+            rad = np.asarray(estimator(np.asarray(centres[n]), n), np.float64)  # [H, W, 3]
             paths[n] = em.write_exr(out / "env" / f"{n}.exr",
                                     em.equirect_to_oct_np(rad, res), "octahedral")
         source = {"estimated_at": {n: np.asarray(centres[n]).tolist() for n in names}}
@@ -136,7 +138,8 @@ def compose(scene_run, objects: dict, placement, out, env=None, estimator=None,
 
     ``objects``: {name: step-2 run folder}; ``placement``: a ``transform.json`` path or
     {name: Similarity}; ``env``: one map for all objects (equirect Z-up or octahedral
-    EXR) — or ``estimator``: callable(world position [3]) -> equirect radiance [H, W, 3].
+    EXR) — or ``estimator``: callable(world position [3], object name) -> equirect
+    radiance [H, W, 3] (the name lets it keep its own record of each estimate).
     """
     t_all = time.perf_counter()
     out = Path(out)

@@ -26,6 +26,18 @@ def _lights_json(lights) -> list[dict]:
              for k, v in l.items()} for l in lights]
 
 
+def _wrap(text: str, font, width: int) -> list[str]:
+    """``text`` in lines of at most ``width`` pixels in ``font`` (split at spaces; a single
+    word wider than that stays whole)."""
+    lines = []
+    for word in text.split(" "):
+        if lines and font.getlength(lines[-1] + " " + word) <= width:
+            lines[-1] += " " + word
+        else:
+            lines.append(word)
+    return lines or [""]
+
+
 def output_paths(out_path) -> dict:
     """{'equirect': X.exr, 'oct': X_oct.exr, 'json': X.json, 'preview': X_preview.png,
     'metrics': X.metrics.jsonl}."""
@@ -68,8 +80,8 @@ def _sky_text(meta: dict) -> str:
     """", sky seen X%, of it clipped Y%" when the meta holds them, else ""."""
     if meta.get("seen_sky_fraction") is None or meta.get("clipped_sky_fraction") is None:
         return ""
-    return (f", sky seen {100 * meta['seen_sky_fraction']:.0f}%, of it clipped "
-            f"{100 * meta['clipped_sky_fraction']:.0f}%")
+    return (f", sky seen {100 * meta['seen_sky_fraction']:.1f}%, of it clipped "
+            f"{100 * meta['clipped_sky_fraction']:.1f}%")          # as the warnings print them
 
 
 def preview_image(result: dict, panel_width: int = 512):
@@ -103,15 +115,17 @@ def preview_image(result: dict, panel_width: int = 512):
     font = ImageFont.load_default()
     ih, iw = panels[0][1].shape[:2]
     pw = min(panel_width, iw)
-    ph, bar, cols = max(1, round(ih * pw / iw)), 16, 2
+    titles = [_wrap(t, font, pw - 8) for t, _ in panels]        # no title runs into the next
+    ph, bar, cols = max(1, round(ih * pw / iw)), 4 + 12 * max(len(t) for t in titles), 2
     rows = -(-len(panels) // cols)
     sheet = Image.new("RGB", (cols * pw, rows * (ph + bar)), (32, 32, 32))
     draw = ImageDraw.Draw(sheet)
-    for i, (title, img) in enumerate(panels):
+    for i, (_, img) in enumerate(panels):
         x, y = (i % cols) * pw, (i // cols) * (ph + bar)
         tile = Image.fromarray(to_u8(img)).resize((pw, ph), Image.BILINEAR)
         sheet.paste(tile, (x, y + bar))
-        draw.text((x + 4, y + 2), title, fill=(255, 255, 255), font=font)
+        for k, line in enumerate(titles[i]):
+            draw.text((x + 4, y + 2 + 12 * k), line, fill=(255, 255, 255), font=font)
         if i == at:                                            # gains at the regions
             for g in regions:
                 u, v = equirect_dir_to_uv_np(np.asarray(g["direction"])[None])[0]

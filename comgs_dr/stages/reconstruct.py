@@ -13,6 +13,7 @@ launches) that a smaller random ray batch would not remove (see benchmarks/recon
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from pathlib import Path
 
@@ -38,6 +39,8 @@ from comgs_dr.train.init import initial_surfels  # noqa: F401 (part of this stag
 from comgs_dr.train import losses as L
 from comgs_dr.train.density import DensityConfig, DensityController
 from comgs_dr.train.loop import BestState, finish, run_loop, zero_nonfinite_grads
+
+log = logging.getLogger(__name__)
 
 CKPT_FORMAT = "comgs_dr.checkpoint/1"
 NEAR_CLIP_FRAC, FAR_CLIP_FRAC = 1e-4, 1e4     # sensor clip planes × the scene extent
@@ -220,6 +223,15 @@ class Trainer:
         bg = 1.0 if data.white_background else 0.0
         self.background = bg
         self.env = cfg.background == "env"
+        if self.env:
+            clear = transparent_fraction(self.views)
+            if clear > 0.01:
+                log.warning("reconstruct: --background env on images with transparent pixels "
+                            "(%.1f%% of the training pixels have alpha < 0.5): they show no "
+                            "sky, so the background learnt there is not the sky; it is recorded "
+                            "as unobserved and estimate-light leaves it to the completion. "
+                            "Learning a sky needs captures that show it (opaque photos)",
+                            100 * clear)
         extra = dict(environment=bgenv.initial_emitter(cfg.env_resolution, self.views),
                      env_background=True) if self.env else {}
         self.scene = gbuffer_scene({"surfels": params}, sensors, max_hits=cfg.max_hits,
@@ -481,6 +493,13 @@ class Trainer:
         return {"surfels": self.params().count}
 
 
+def transparent_fraction(views) -> float:
+    """Share of the training pixels with alpha < ½ (views without a mask count as opaque)."""
+    n = sum(v.image.shape[0] * v.image.shape[1] for v in views)
+    clear = sum(int((v.mask < 0.5).sum()) for v in views if v.mask is not None)
+    return clear / max(n, 1)
+
+
 def train_radiance(data, run_dir, cfg: RadianceConfig, progress: bool = True) -> dict:
     """Run (or resume) step 1; writes point_cloud.ply, train_log.json, psnr_vs_time.png."""
     tr = Trainer(data, run_dir, cfg, progress)
@@ -494,7 +513,8 @@ def train_radiance(data, run_dir, cfg: RadianceConfig, progress: bool = True) ->
     save_ply(tr.params(), str(run_dir / "point_cloud.ply"))
     if tr.env:
         obs, clipped = bgenv.capture_maps(tr.scene, tr.integ, list(range(len(tr.views))),
-                                          cfg.env_resolution, [v.image for v in tr.views])
+                                          cfg.env_resolution, [v.image for v in tr.views],
+                                          masks=[v.mask for v in tr.views])
         bgenv.save(run_dir, np.array(tr.mp[bgenv.KEY]), obs, clipped)
     summary = {"iterations": tr.iteration, "train_seconds": tr.elapsed, "surfels": tr.params().count,
                "init": tr.init_desc, "stopped_early": stopped_early, "diverged": diverged, **final,

@@ -106,6 +106,7 @@ def _loop(trainer, cfg, desc, progress, log_dir, best, jsonl_dir, stage, guard) 
     stopped_early = False
     extra = getattr(trainer, "log_fields", dict)
     clock = CheckpointClock(cfg.checkpoint_every, getattr(cfg, "checkpoint_every_s", None))
+    shown = {}                         # the bar names each PSNR and keeps the last test one
     while trainer.iteration < cfg.iterations:
         stats = trainer.step()
         trainer.elapsed = time.perf_counter() - t0
@@ -122,8 +123,10 @@ def _loop(trainer, cfg, desc, progress, log_dir, best, jsonl_dir, stage, guard) 
             trainer.log.append(rec)
             if jsonl_dir is not None:
                 runlog.append(jsonl_dir, runlog.from_train_log(stage, [rec])[0])
-            bar.set_postfix(loss=f"{stats['loss']:.4f}",
-                            psnr=f"{rec.get('psnr_test', stats['psnr_train']):.2f}", **extra())
+            shown["psnr_train"] = f"{stats['psnr_train']:.2f}"
+            if "psnr_test" in rec:
+                shown["psnr_test"] = f"{rec['psnr_test']:.2f}"
+            bar.set_postfix(loss=f"{stats['loss']:.4f}", **shown, **extra())
         bar.update(1)
         if guard.signum is not None:
             bar.close()
