@@ -169,3 +169,19 @@ def test_short_forward_facing_reconstruction_improves(capture, tmp_path):
     assert "near/far" in s["init"]
     assert last > first + 1.5, (first, last)
     assert s["psnr_test"] > 13.0, s["psnr_test"]
+
+
+def test_make_dataset_llff_cli(tmp_path, capsys):
+    """`comgs make-dataset llff` writes a capture the LLFF loader reads (no points)."""
+    from comgs_dr.cli import main
+    out = tmp_path / "ff"
+    args = ["make-dataset", "llff", "--out", str(out), "--rows", "1", "--cols", "3",
+            "--width", "32", "--height", "24", "--downscale", "2", "--spp", "2", "--quiet"]
+    assert main(args) == 0
+    assert "wrote 3 views" in capsys.readouterr().out
+    assert (out / "poses_bounds.npy").is_file() and len(list((out / "images_2").iterdir())) == 3
+    d = load_dataset(out)
+    assert len(d.train) + len(d.test) == 3 and d.train[0].image.shape == (24, 32, 3)
+    assert not (out / "points3d.ply").exists()
+    assert main(args[:-1] + ["--downscale", "5"]) == 2               # 5 does not divide 32x24
+    assert "--downscale" in capsys.readouterr().err

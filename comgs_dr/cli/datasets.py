@@ -74,6 +74,24 @@ def _add_make_dataset(sub) -> None:
     sc.add_argument("--seed", type=int, default=0, metavar="S")
     sc.add_argument("--variant", default="auto", help="Mitsuba variant (default auto)")
     sc.add_argument("--quiet", action="store_true", help="no progress bars")
+    ll = kinds.add_parser(
+        "llff", help="a forward-facing LLFF capture without a point cloud (poses_bounds.npy)",
+        description="A hand-held forward-facing capture of a textured table-top (a backdrop "
+                    "wall, a floor, a sphere, a box, a card, a pillar; constant sky and sun) on "
+                    "a jittered ROWS x COLS grid: poses_bounds.npy, images/ and images_<k>/, "
+                    "meta.json, and no points (comgs_dr.data.llff_synthetic). Reconstruct it "
+                    "with `comgs reconstruct DIR --scene -r K`.")
+    ll.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    ll.add_argument("--rows", type=int, default=4, metavar="N")
+    ll.add_argument("--cols", type=int, default=5, metavar="N")
+    ll.add_argument("--width", type=int, default=800, metavar="W", help="images/ width")
+    ll.add_argument("--height", type=int, default=600, metavar="H", help="images/ height")
+    ll.add_argument("--downscale", type=int, nargs="*", default=[8], metavar="K",
+                    help="images_<K>/ folders written beside images/ (default 8)")
+    ll.add_argument("--spp", type=int, default=16, metavar="S")
+    ll.add_argument("--seed", type=int, default=0, metavar="S")
+    ll.add_argument("--variant", default="auto", help="Mitsuba variant (default auto)")
+    ll.add_argument("--quiet", action="store_true", help="no per-view lines")
     c = kinds.add_parser(
         "composition", help="a scene, objects and path-traced composites of them (ground truth)",
         description="scene/ (NeRF-synthetic capture of a textured ground with a wall and a box, "
@@ -128,6 +146,8 @@ def _cmd_make_dataset(args) -> int:
         return _make_scene(args)
     if args.kind == "composition":
         return _make_composition(args)
+    if args.kind == "llff":
+        return _make_llff(args)
     raise AssertionError(f"unhandled dataset kind {args.kind}")  # argparse restricts KIND
 
 
@@ -161,6 +181,28 @@ def _make_scene(args) -> int:
                             progress=not args.quiet)
     print(f"wrote {s['n_train']} train + {s['n_test']} test views ({s['resolution']}px) and "
           f"{args.points} points to {s['out_dir']} in {s['seconds']:.1f} s [{s['variant']}]")
+    return 0
+
+
+def _make_llff(args) -> int:
+    from comgs_dr.data.llff_synthetic import LLFFDatasetConfig, make_llff_dataset
+    for flag, v, lo in (("--rows", args.rows, 1), ("--cols", args.cols, 1),
+                        ("--width", args.width, 8), ("--height", args.height, 8),
+                        ("--spp", args.spp, 1)):
+        if v < lo:
+            raise ValueError(f"make-dataset llff: {flag} must be >= {lo}, got {v}")
+    if args.rows * args.cols < 2:
+        raise ValueError("make-dataset llff: need at least 2 views (--rows x --cols)")
+    if any(k < 1 or args.width % k or args.height % k for k in args.downscale):
+        raise ValueError(f"make-dataset llff: each --downscale must be >= 1 and divide "
+                         f"{args.width}x{args.height}, got {args.downscale}")
+    cfg = LLFFDatasetConfig(out_dir=args.out, rows=args.rows, cols=args.cols, width=args.width,
+                            height=args.height, downscales=tuple(args.downscale), spp=args.spp,
+                            seed=args.seed, variant=set_variant(args.variant))
+    m = make_llff_dataset(cfg, progress=not args.quiet)
+    print(f"wrote {len(m['images'])} views ({len(m['test_images'])} of them LLFF test views), "
+          f"{args.width}x{args.height} + images_{{{','.join(map(str, args.downscale))}}}, "
+          f"poses_bounds.npy, no points, to {args.out} in {m['seconds']:.1f} s")
     return 0
 
 
