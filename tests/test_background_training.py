@@ -369,3 +369,34 @@ def test_clipped_level_is_the_light_heads():
     """Step 1 records a pixel as clipped at the level at which the light head reads one."""
     from comgs_dr.lighting import lights
     assert bgenv.CLIPPED == lights.SAT
+
+
+def test_step1_weighs_the_sky_by_alpha_unless_masks_are_given(sky_scene, tmp_path, monkeypatch,
+                                                              caplog):
+    """train_radiance hands the views' alpha to capture_maps (and warns on transparent
+    pixels); a dataset whose masks came from a masks folder (``meta["masks"]``, e.g. COLMAP
+    feature masks) is not read as alpha."""
+    import logging
+    seen = []
+    real = bgenv.capture_maps
+
+    def spy(*a, masks=None, **kw):
+        seen.append(masks)
+        return real(*a, masks=masks, **kw)
+
+    monkeypatch.setattr(bgenv, "capture_maps", spy)
+    data = load_dataset(sky_scene / "scene")
+    for v in data.train:                                     # the upper half transparent
+        v.mask = np.ones(v.image.shape[:2], np.float32)
+        v.mask[: v.mask.shape[0] // 2] = 0.0
+    cfg = _cfg(iterations=4, eval_every=4, log_every=4, checkpoint_every=4)
+    with caplog.at_level(logging.WARNING, logger="comgs_dr.stages.reconstruct"):
+        train_radiance(data, tmp_path / "a", cfg, progress=False)
+    assert "transparent pixels" in caplog.text
+    assert len(seen[-1]) == len(data.train)
+    assert all(m is v.mask for m, v in zip(seen[-1], data.train))
+    caplog.clear()
+    data.meta = {**(data.meta or {}), "masks": "feature_masks"}
+    with caplog.at_level(logging.WARNING, logger="comgs_dr.stages.reconstruct"):
+        train_radiance(data, tmp_path / "b", cfg, progress=False)
+    assert seen[-1] is None and "transparent pixels" not in caplog.text

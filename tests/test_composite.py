@@ -444,7 +444,7 @@ def test_compose_warns_about_a_black_environment_map(tmp_path, caplog):
 
 
 def test_shadow_region_probes_say_when_fewer_than_asked(caplog):
-    """Fewer facing scene points than probes asked: all are used, and the shortfall is said."""
+    """Fewer facing scene points than probes asked: all are used, and the count is said."""
     import logging
     g = np.linspace(-1.0, 1.0, 10)
     pts = np.stack(np.meshgrid(g, g, [0.0]), -1).reshape(-1, 3)                 # 100 points
@@ -452,7 +452,7 @@ def test_shadow_region_probes_say_when_fewer_than_asked(caplog):
     lo, hi = np.array([-0.2, -0.2, 0.1]), np.array([0.2, 0.2, 0.5])
     for count, short in ((5000, True), (20, False)):
         caplog.clear()
-        with caplog.at_level(logging.WARNING, logger="comgs_dr.sops.occlusion"):
+        with caplog.at_level(logging.INFO, logger="comgs_dr.sops.occlusion"):
             ps = occ.shadow_region_probes(pts, nrm, lo, hi, occ.ShadowConfig(count=count, res=4))
         n = ps.meta["shadow_region"]["candidates"]
         assert ps.count == min(count, n) and 20 < n <= 100

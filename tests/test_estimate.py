@@ -344,7 +344,7 @@ def test_cli_on_ply(params, tiny_weights, tmp_path, capsys):
     doc = json.loads((tmp_path / "env.json").read_text())
     assert doc["meta"]["source"] == str(ply) and doc["meta"]["colour_space"] == "srgb"
     hot = [l["above_white"] for l in doc["lights"]]          # lights, or bright surfaces
-    assert hot and all(h == (max(l["mean_radiance"]) > 1.0) for h, l in zip(hot, doc["lights"]))
+    assert hot and all(h == (l["peak_luminance"] > 1.0) for h, l in zip(hot, doc["lights"]))
     assert f"{len(hot)} brightest region(s), {sum(hot)} of them above the EV-0 white" in text
     lines = [l for l in text.splitlines() if l.startswith("clipped region ")]
     assert len(lines) == len(doc["light_head_regions"]) >= 1        # the white window
@@ -552,7 +552,7 @@ def test_compose_cli_reports_each_placements_auto_label(monkeypatch, tmp_path, c
             "--placement", str(tmp_path / "p.json"), "--out", str(tmp_path / "out"), "--quiet"]
     assert main(args) == 0
     assert calls == ["auto"]
-    assert written == [tmp_path / "out" / "env" / "a_estimate" / "env.exr"]
+    assert written == [tmp_path / "out" / "env" / "a_estimate" / "a.exr"]
     assert "lighting at [0.5, 0.25, 0.0]: label auto -> indoor (p(outdoor) 0.12)" in \
         capsys.readouterr().out
     assert main(args + ["--label", "outdoor"]) == 0

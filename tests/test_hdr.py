@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 import torch
 
+from comgs_dr.core.colorspace import LUMA
 from comgs_dr.lighting import hdr as H
 
 EVS = (0.0, -2.5, -5.0)
@@ -182,6 +183,7 @@ def test_extract_lights_planted_sun(theta, phi):
     np.testing.assert_allclose(top["rgb_power"], power, rtol=0.10)
     assert abs(np.linalg.norm(top["direction"]) - 1) < 1e-12
     np.testing.assert_allclose(top["mean_radiance"], top["rgb_power"] / top["solid_angle"])
+    assert top["peak_luminance"] == pytest.approx(float((img @ LUMA).max()))   # the sun's
     assert top["solid_angle"] < 0.05
     if phi == 180:   # really straddles the seam: both edge columns lit
         assert img[:, 0, 0].max() > 100 and img[:, -1, 0].max() > 100

@@ -99,7 +99,7 @@ def _cmd_compose(args) -> int:
             if r["meta"].get("p_outdoor") is not None:       # each placement is classified
                 print(f"lighting at {at}: label "
                       f"auto -> {r['meta']['label']} (p(outdoor) {r['meta']['p_outdoor']:.2f})")
-            paths = write_outputs(r, Path(args.out) / "env" / f"{name}_estimate" / "env.exr")
+            paths = write_outputs(r, Path(args.out) / "env" / f"{name}_estimate" / f"{name}.exr")
             print(f"lighting of {name!r} at {at}: {paths['json']}, {paths['preview']}")
             return r["hdr"]
     s = compose(args.scene_run, objects, args.placement, args.out, env=args.env,
@@ -153,8 +153,9 @@ def _cmd_render_comp(args) -> int:
         res = args.res[0] if len(args.res) == 1 else tuple(args.res)
     s = render_comp(args.comp_dir, args.cameras, args.variant, args.gt_dir, mats, res,
                     args.rays, progress=not args.quiet)
-    line = (f"{s['frames']} frames ({s['variant']}), first {s['first_frame_seconds']:.2f} s "
-            f"(kernel compilation included), then {s['frame_seconds']:.3f} s/frame (median)")
+    line = (f"{s['frames']} frame(s) ({s['variant']}), first {s['first_frame_seconds']:.2f} s "
+            f"(kernel compilation included)" + (f", then {s['frame_seconds']:.3f} s/frame "
+                                                  f"(median)" if s["frames"] > 1 else ""))
     if "psnr" in s:
         line += f", PSNR {s['psnr']:.2f} dB, SSIM {s['ssim']:.4f}"
     print(line + f"; renders in {s['renders']}")

@@ -198,7 +198,8 @@ def extract_lights(hdr_equirect, k: int = 3, threshold_quantile: float = 0.999,
     region (sheds circumsolar glow) that holds a seed, so anti-aliased edges count toward
     its power. Lights brighter than ~(1 − q)·4π sr of the sphere at full radiance
     saturate both quantiles and lose their partially covered edge pixels. Each light: ``direction`` (unit, luminance·dω-weighted mean), ``solid_angle``
-    (sr), ``rgb_power`` = Σ L dω and ``mean_radiance`` = power / solid angle; sorted by
+    (sr), ``rgb_power`` = Σ L dω, ``mean_radiance`` = power / solid angle and
+    ``peak_luminance`` (its brightest pixel); sorted by
     luminance power, largest first. An all-black map gives [].
     """
     img = np.asarray(hdr_equirect, np.float64)
@@ -231,11 +232,14 @@ def extract_lights(hdr_equirect, k: int = 3, threshold_quantile: float = 0.999,
     wl = lum.ravel() * dw
     d = equirect_directions(h, w).reshape(-1, 3)
     dsum = np.stack([np.bincount(flat, d[:, c] * wl, n + 1) for c in range(3)], -1)
+    top = np.zeros(n + 1)
+    np.maximum.at(top, flat, lum.ravel())
     lights = []
     for i in ids:
         direction = dsum[i] / max(np.linalg.norm(dsum[i]), 1e-300)
         lights.append({"direction": direction, "solid_angle": float(area[i]),
-                       "rgb_power": power[i].copy(), "mean_radiance": power[i] / area[i]})
+                       "rgb_power": power[i].copy(), "mean_radiance": power[i] / area[i],
+                       "peak_luminance": float(top[i])})
     lights.sort(key=lambda l: -float(l["rgb_power"] @ LUMA))
     return lights[:k]
 

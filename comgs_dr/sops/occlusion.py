@@ -79,11 +79,10 @@ def shadow_region_probes(points, normals, lo, hi, cfg: ShadowConfig = ShadowConf
                          f"inside its region {blo.round(3).tolist()}–{bhi.round(3).tolist()} "
                          f"({int(inside.sum())} points inside, none facing it); is the "
                          f"placement inside the reconstructed scene?")
-    if len(keep) < cfg.count:
-        log.warning("shadow probes of %r: %d of the %d asked; only %d scene surface points "
-                    "(depth fused from the training views) face the object inside its region: "
-                    "the shadow there is sampled more coarsely", name, len(keep), cfg.count,
-                    len(keep))
+    if len(keep) < cfg.count:       # every facing point gets a probe: the most there can be
+        log.info("shadow probes of %r: %d of the %d asked, one on every scene surface point "
+                 "(depth fused from the training views) that faces the object inside its "
+                 "region", name, len(keep), cfg.count)
     idx = keep[farthest_points(points[keep], cfg.count, seed)]
     pts, nrm = points[idx], normals[idx]
     return ProbeSet(positions=pts + cfg.offset_frac * size * nrm, normals=nrm, res=cfg.res,

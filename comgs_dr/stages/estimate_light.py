@@ -321,7 +321,8 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     t = time.perf_counter()
     lights = hdr.extract_lights(radiance, k=int(cfg.n_lights))
     for l in lights:             # the brightest regions need not be lights: a white wall
-        l["above_white"] = bool(np.max(l["mean_radiance"]) > 1.0)     # EV-0 white = 1
+        l["above_white"] = bool(l["peak_luminance"] > 1.0)     # EV-0 white = 1 (its peak:
+                                                               # a region can take in a wall)
     timings["lights"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
 

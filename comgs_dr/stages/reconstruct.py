@@ -223,7 +223,10 @@ class Trainer:
         bg = 1.0 if data.white_background else 0.0
         self.background = bg
         self.env = cfg.background == "env"
-        if self.env:
+        # views' masks are the images' alpha unless a masks folder was given (COLMAP feature
+        # masks, where 0 may mean "ignore this sky"): only alpha says a pixel shows nothing
+        self.alpha_masks = not (getattr(data, "meta", None) or {}).get("masks")
+        if self.env and self.alpha_masks:
             clear = transparent_fraction(self.views)
             if clear > 0.01:
                 log.warning("reconstruct: --background env on images with transparent pixels "
@@ -514,7 +517,8 @@ def train_radiance(data, run_dir, cfg: RadianceConfig, progress: bool = True) ->
     if tr.env:
         obs, clipped = bgenv.capture_maps(tr.scene, tr.integ, list(range(len(tr.views))),
                                           cfg.env_resolution, [v.image for v in tr.views],
-                                          masks=[v.mask for v in tr.views])
+                                          masks=[v.mask for v in tr.views]
+                                          if tr.alpha_masks else None)
         bgenv.save(run_dir, np.array(tr.mp[bgenv.KEY]), obs, clipped)
     summary = {"iterations": tr.iteration, "train_seconds": tr.elapsed, "surfels": tr.params().count,
                "init": tr.init_desc, "stopped_early": stopped_early, "diverged": diverged, **final,

@@ -194,7 +194,8 @@ def save(run_dir, radiance: np.ndarray, observed: np.ndarray,
     a = write_exr(run_dir / FILE, np.asarray(radiance, np.float32), "octahedral")
     b = exr.write_image(run_dir / OBSERVED_FILE,
                         np.repeat(np.asarray(observed, np.float32)[..., None], 3, -1),
-                        {"layout": "octahedral", "content": "observed fraction (max T_final)"})
+                        {"layout": "octahedral",
+                         "content": "observed fraction (max T_final x alpha)"})
     if clipped is None:
         return a, b
     rec = _check_record(clipped, "background.save")
