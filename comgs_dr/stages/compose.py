@@ -7,7 +7,7 @@ Inputs: a step-1 scene run, one step-2 object run per object, placements
 
 * ``env/<name>.exr`` — octahedral map lighting each object (``comgs compose`` without
   ``--env`` also keeps each estimate's own files, as ``comgs estimate-light`` writes them, in
-  ``env/<name>_estimate/``: env.json, the preview, the equirect map);
+  ``env/<name>_estimate/``: ``<name>.json``, the preview, the equirect map);
 * ``probes/<name>.npz`` — the object's own SOPs placed in the world
   (:func:`~comgs_dr.sops.occlusion.transform_probes`), occlusion by the other objects added;
 * ``shadow_probes.npz`` — shadow-region probes on the scene around every object with the
