@@ -536,7 +536,8 @@ def test_compose_cli_reports_each_placements_auto_label(monkeypatch, tmp_path, c
         assert env is None and estimator([0.5, 0.25, 0.0], "a").shape == (2, 4, 3)
         return {"timings": dict.fromkeys(("lighting", "probe_placement", "occlusion_tracing",
                                           "total"), 0.0),
-                "probes": {"shadow": 0}, "pairs": {"traced": [], "reused": [], "culled": []}}
+                "probes": {"shadow": 7, "shadow_per_object": {"a": 7}},
+                "pairs": {"traced": [], "reused": [], "culled": []}}
 
     written = []
 
@@ -553,8 +554,9 @@ def test_compose_cli_reports_each_placements_auto_label(monkeypatch, tmp_path, c
     assert main(args) == 0
     assert calls == ["auto"]
     assert written == [tmp_path / "out" / "env" / "a_estimate" / "a.exr"]
-    assert "lighting at [0.5, 0.25, 0.0]: label auto -> indoor (p(outdoor) 0.12)" in \
-        capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "shadow probes of 'a': 7 of the 10000 asked" in text       # the default preset
+    assert "lighting at [0.5, 0.25, 0.0]: label auto -> indoor (p(outdoor) 0.12)" in text
     assert main(args + ["--label", "outdoor"]) == 0
     assert calls[-1] == "outdoor" and "label auto" not in capsys.readouterr().out
     assert main(args + ["--light-head", "none"]) == 0 and heads[-1] == "none"

@@ -109,6 +109,11 @@ def _cmd_compose(args) -> int:
     for k in ("lighting", "probe_placement", "occlusion_tracing", "total"):
         print(f"{k:<20}{t[k]:>10.2f}")
     pr = s["pairs"]
+    short = {n: c for n, c in s["probes"].get("shadow_per_object", {}).items()
+             if c < cfg.shadow.count}                  # every facing scene point is used
+    for n, c in short.items():
+        print(f"shadow probes of {n!r}: {c} of the {cfg.shadow.count} asked (every scene "
+              f"surface point facing it in its region has one)")
     print(f"{s['probes']['shadow']} shadow probes; occlusion pairs traced {len(pr['traced'])}, "
           f"reused {len(pr['reused'])}, culled {len(pr['culled'])}; wrote {args.out}")
     return 0
