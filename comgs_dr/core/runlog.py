@@ -27,12 +27,9 @@ def _clean(rec: dict) -> dict:
     """JSON-safe copy: numpy scalars to Python, non-finite floats to None (JSON has no NaN)."""
     out = {}
     for k, v in rec.items():
-        if hasattr(v, "item") and not isinstance(v, (str, bytes)):
-            if getattr(v, "ndim", 0) != 0:
-                continue                          # arrays are not logged
-            v = v.item()
-        if isinstance(v, float) and not math.isfinite(v):
-            v = None
+        if getattr(v, "ndim", 0) != 0:
+            continue                              # arrays are not logged
+        v = json_safe(v)
         if isinstance(v, (int, float, str, bool)) or v is None:
             out[str(k)] = v
     return out

@@ -38,8 +38,8 @@ from comgs_dr.lighting.hdr import area_resize_equirect, expose
 
 log = logging.getLogger(__name__)
 
-__all__ = ["HELD_OUT", "label_of", "trained_maps", "auto_exposure", "load_map", "load_maps", "map_files",
-           "sunsky_panorama", "room_panorama", "rotate_u", "augmented_view"]
+__all__ = ["HELD_OUT", "label_of", "trained_maps", "auto_exposure", "load_map", "load_maps",
+           "map_files", "sunsky_panorama", "room_panorama", "rotate_u", "augmented_view"]
 
 # evaluation maps of shared/data/hdri, never trained on: two Poly Haven maps and three of the
 # Blender maps (blender_sunrise, the only shared map with a clear sun, is also the end-to-end

@@ -260,12 +260,14 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     sky_seen = hdr.seen_sky_fraction(mask)
     sky_clip = hdr.clipped_sky_fraction(rgb, mask)
     if sky_seen < hdr.SEEN_SKY_WARN:
-        skipped = cfg.background == "none" and _background_dir("auto", scene_or_ply_path)
-        fix = ("add views that see the sky, or give the map (compose --env)" if bg_dir is not None
-               else "the run has a learned sky that background 'none' left out: use the "
-               "default background 'auto'" if skipped
-               else "if the capture saw the sky, reconstruct with --background env (step 1 "
-               "keeps no sky without it); else add sky views or give the map (compose --env)")
+        if bg_dir is not None:
+            fix = "add views that see the sky, or give the map (compose --env)"
+        elif cfg.background == "none" and _background_dir("auto", scene_or_ply_path):
+            fix = "the run has a learned sky that background 'none' left out: use the default " \
+                  "background 'auto'"
+        else:
+            fix = "if the capture saw the sky, reconstruct with --background env (step 1 " \
+                  "keeps no sky without it); else add sky views or give the map (compose --env)"
         log.warning("estimate_light: the capture saw %.1f%% of the sky (or ceiling) above the "
                     "placement (warned below %.0f%%): the lights up there are the completion's "
                     "guess (measured through step 1 without sky views: E(sun)/E(up) 23-81%% "

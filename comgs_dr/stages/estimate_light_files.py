@@ -21,11 +21,6 @@ __all__ = ["output_paths", "write_outputs", "preview_image", "jsonable"]
 jsonable = runlog.json_safe          # numpy to Python, non-finite floats to None (strict JSON)
 
 
-def _lights_json(lights) -> list[dict]:
-    return [{k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else v)
-             for k, v in l.items()} for l in lights]
-
-
 def _wrap(text: str, font, width: int) -> list[str]:
     """``text`` in lines of at most ``width`` pixels in ``font`` (split at spaces; a single
     word wider than that stays whole)."""
@@ -61,12 +56,11 @@ def write_outputs(result: dict, out_path) -> dict:
     paths = output_paths(out_path)
     envmap.write_exr(paths["equirect"], result["hdr"], "equirect")
     envmap.write_exr(paths["oct"], result["oct"], "octahedral")
-    doc = {"meta": result["meta"], "timings": result["timings"],
-           "lights": _lights_json(result["lights"]),
-           "lobes": _lights_json(result.get("lobes", [])),
-           "light_head_regions": _lights_json([{k: v for k, v in g.items() if k != "region"}
-                                               for g in result.get("light_regions", [])]),
-           "files": {k: v.name for k, v in paths.items()}}
+    doc = {"meta": result["meta"], "timings": result["timings"], "lights": result["lights"],
+           "lobes": result.get("lobes", []),
+           "light_head_regions": [{k: v for k, v in g.items() if k != "region"}
+                                  for g in result.get("light_regions", [])],
+           "files": {k: v.name for k, v in paths.items()}}                # jsonable: lists
     paths["json"].write_text(json.dumps(jsonable(doc), indent=2, allow_nan=False))
     runlog.rewrite(paths["metrics"].parent,
                    runlog.part_records("estimate-light", result["timings"],
