@@ -294,3 +294,33 @@ def test_augmented_view_keeps_power_and_masks_the_ldr():
         assert a.shape == (16, 32) and set(np.unique(a)) <= {0.0, 1.0}
         assert np.all(ldr[a <= 0.5] == 0)
         np.testing.assert_allclose(ldr[a > 0.5], expose(m, 0.0)[a > 0.5])
+
+
+def test_finished_room_is_repainted_and_lit_by_strips():
+    """_finish_room: pale ceiling (saturation ≤ 0.06), strip lights facing down at the
+    ceiling, uplights facing up below it; the plain room (same seed) has none of them and
+    its random stream is unchanged by the option's existence."""
+    from comgs_dr.lighting.pano_data import _room_dict
+    n_up = 0
+    for seed in range(8):
+        plain, _, _ = _room_dict(np.random.default_rng(seed))
+        d, _, _ = _room_dict(np.random.default_rng(seed), finished=True)
+        assert not any(k.startswith(("strip", "uplight")) for k in plain)
+        assert plain.keys() <= d.keys()
+        top = d["ceiling"]["to_world"].matrix[2, 3]
+        ceil = np.array(d["ceiling"]["bsdf"]["bsdf"]["reflectance"]["value"])
+        assert ceil.min() >= 0.7 * 0.94 - 1e-9 and ceil.max() - ceil.min() <= 0.06 * ceil.max() + 1e-9
+        strips = [v for k, v in d.items() if k.startswith("strip")]
+        assert 2 <= len(strips) <= 8
+        for s in strips:
+            m = np.array(s["to_world"].matrix)
+            assert m[2, 3] == pytest.approx(top - 0.01)
+            assert (m[:3, :3] @ np.array([0.0, 0.0, 1.0]))[2] < 0          # facing down
+        for k, v in d.items():
+            if k.startswith("uplight"):
+                n_up += 1
+                m = np.array(v["to_world"].matrix)
+                assert (m[:3, :3] @ np.array([0.0, 0.0, 1.0]))[2] > 0 and m[2, 3] < top
+    assert n_up > 0
+    img = P.room_panorama(np.random.default_rng(1), 16, 32, spp=4, finished=True)
+    assert np.isfinite(img).all() and img.min() >= 0 and img.max() > 0

@@ -41,6 +41,9 @@ class TrainSceneLabelConfig:
     draws_real: int = 40          # per real map and height
     n_sky: int = 150
     n_rooms: int = 150
+    finished_rooms: float = 0.0   # share of the rooms drawn finished (``pano_data.
+                                  # _finish_room``: white ceiling, wood floor, strip lights)
+    room_spp: int = 16
     draws_synth: int = 2          # per sky / room
     n_masks: int = 60
     aug_ev: float = 1.5
@@ -86,7 +89,9 @@ def build_data(cfg: TrainSceneLabelConfig, progress: bool = True) -> dict:
         for _ in range(cfg.draws_synth):
             xs.append(_draw(rng, sky, masks, cfg)), ys.append(OUTDOOR), gs.append(-1)
     for i in tqdm(range(cfg.n_rooms), desc="rooms", disable=not progress):
-        room = P.room_panorama(rng, 64, 128, spp=16, seed=cfg.seed * 7919 + i).astype(np.float64)
+        room = P.room_panorama(rng, 64, 128, spp=cfg.room_spp, seed=cfg.seed * 7919 + i,
+                               finished=bool(rng.random() < cfg.finished_rooms)
+                               if cfg.finished_rooms > 0 else False).astype(np.float64)
         if room.max() <= 0:
             continue
         for _ in range(cfg.draws_synth):
@@ -169,6 +174,11 @@ def add_arguments(ap) -> None:
     ap.add_argument("--draws", type=int, default=d.draws_real, help="draws per real map and size")
     ap.add_argument("--skies", type=int, default=d.n_sky)
     ap.add_argument("--rooms", type=int, default=d.n_rooms)
+    ap.add_argument("--finished-rooms", type=float, default=d.finished_rooms,
+                    help="share of the rooms drawn as finished interiors (white ceiling, wood "
+                         "floor, strip lights, uplights)")
+    ap.add_argument("--room-spp", type=int, default=d.room_spp, help="samples per pixel of "
+                    "the path-traced rooms")
     ap.add_argument("--l2", type=float, default=d.l2)
     ap.add_argument("--margin", type=float, default=d.margin)
     ap.add_argument("--seed", type=int, default=d.seed)
@@ -180,8 +190,12 @@ def run_from_args(args) -> int:
         raise ValueError(f"--margin must lie in [0, 0.5), got {args.margin}")
     if args.draws < 1 or args.skies < 0 or args.rooms < 0 or not args.l2 > 0:
         raise ValueError("--draws must be >= 1; --skies, --rooms >= 0; --l2 > 0")
+    if not 0.0 <= args.finished_rooms <= 1.0 or args.room_spp < 1:
+        raise ValueError(f"--finished-rooms must lie in [0, 1] and --room-spp be >= 1, got "
+                         f"{args.finished_rooms}, {args.room_spp}")
     cfg = TrainSceneLabelConfig(out=args.out, maps_dir=args.maps, held_out=tuple(args.held_out),
                                 draws_real=args.draws, n_sky=args.skies, n_rooms=args.rooms,
+                                finished_rooms=args.finished_rooms, room_spp=args.room_spp,
                                 l2=args.l2, margin=args.margin, seed=args.seed)
     info = train(cfg, progress=not args.quiet, command=" ".join(sys.argv))
     print(f"saved {cfg.out}: {info['draws']} draws; on them {info['train_scores']}")
