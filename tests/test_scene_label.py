@@ -191,12 +191,24 @@ def test_training_stage_tiny(tmp_path):
     write_image(maps / "room_c.exr", _pano(32, False, 3).astype(np.float32))
     cfg = T.TrainSceneLabelConfig(out=tmp_path / "m.json", maps_dir=maps, held_out=("sky_b",),
                                   heights=(32,), draws_real=4, n_sky=3, n_rooms=3,
-                                  draws_synth=1, n_masks=2)
+                                  draws_synth=1, n_masks=2, finished_rooms=1.0, room_spp=4)
     info = T.train(cfg, progress=False)
     m = S.load_model(cfg.out)
     assert [r["left_out"] for r in info["cross_validation"]] == ["room_c", "sky_a"]
     assert [r["map"] for r in info["held_out_scores"]] == ["sky_b"]
-    assert info["held_out_scores"][0]["draws"] == 4 and info["draws"] == 4 * 2 + 3 + 3
+    # 4 draws of each training map, 3 skies, the rooms but a black one (eye inside a box)
+    assert info["held_out_scores"][0]["draws"] == 4 and 4 * 2 + 3 + 1 <= info["draws"] <= 4 * 2 + 3 + 3
     for r in info["cross_validation"] + info["held_out_scores"]:
         assert r["correct"] + r["unknown"] + r["wrong"] == r["draws"]
     assert len(m.coef) == len(S.FEATURES) and np.isfinite(m.coef).all()
+
+
+@pytest.mark.parametrize("flags", [["--finished-rooms", "1.5"], ["--finished-rooms", "-0.1"],
+                                   ["--room-spp", "0"]])
+def test_training_cli_refuses_bad_room_options(flags, tmp_path):
+    import argparse
+    from comgs_dr.stages import train_scene_label as T
+    ap = argparse.ArgumentParser()
+    T.add_arguments(ap)
+    with pytest.raises(ValueError, match="finished-rooms"):
+        T.run_from_args(ap.parse_args(["--out", str(tmp_path / "m.json"), *flags]))
