@@ -75,3 +75,15 @@ def test_nan_final_state_is_replaced():
     with pytest.warns(UserWarning):
         assert best.settle(tr, float("nan"), tr.iteration, "test") is not None
     assert tr.value == 3.0
+
+
+def test_write_log_is_strict_json_with_nan_as_null(tmp_path):
+    """A diverged run's NaN loss goes into train_log.json as null (strict parsers reject
+    NaN); finite values are kept."""
+    import json
+
+    from comgs_dr.train.loop import LOG_NAME, write_log
+    write_log(tmp_path, [{"loss": float("nan"), "psnr": 20.5}], {"psnr_test": float("inf")})
+    txt = (tmp_path / LOG_NAME).read_text()
+    d = json.loads(txt, parse_constant=lambda c: pytest.fail(f"non-strict constant {c}"))
+    assert d == {"summary": {"psnr_test": None}, "log": [{"loss": None, "psnr": 20.5}]}

@@ -85,6 +85,8 @@ def test_map_files_names_every_unusable_map(tmp_path):
 
 @pytest.mark.parametrize("name,card,expect", [
     ("net.pt", {"data": {"poly_haven": ["a", "b"]}}, {"a", "b"}),          # train-completion
+    ("net.pt", {"data": {"poly_haven": ["a"], "init_maps": ["b", "z"]}}, {"a", "b", "z"}),
+    ("net.pt", {"data": {"poly_haven": ["a"], "init_maps": None}}, {"a"}),  # --init: no card
     ("head.pt", {"maps": ["c"], "held_out": ["d"]}, {"c"}),                 # train-light-head
     ("label.json", {"format": "x", "info": {"maps": ["e"]}}, {"e"}),        # train-scene-label
     ("head.pt", {"maps": "c"}, None),                                       # not a list
@@ -324,3 +326,15 @@ def test_finished_room_is_repainted_and_lit_by_strips():
     assert n_up > 0
     img = P.room_panorama(np.random.default_rng(1), 16, 32, spp=4, finished=True)
     assert np.isfinite(img).all() and img.min() >= 0 and img.max() > 0
+
+
+def test_fine_tuned_card_names_the_init_weights_maps(tmp_path):
+    """train-completion --init W records W's maps (``data.init_maps``), so trained_maps of
+    the fine-tuned weights names every map they saw."""
+    from comgs_dr.stages.train_completion import _init_maps
+    (tmp_path / "w.json").write_text(json.dumps({"data": {"poly_haven": ["b", "a"]}}))
+    assert _init_maps(tmp_path / "w.pt") == ["a", "b"]
+    assert _init_maps(None) is None and _init_maps(tmp_path / "none.pt") is None
+    card = {"data": {"poly_haven": ["c"], "init_maps": _init_maps(tmp_path / "w.pt")}}
+    (tmp_path / "ft.json").write_text(json.dumps(card))
+    assert P.trained_maps(tmp_path / "ft.pt") == frozenset({"a", "b", "c"})

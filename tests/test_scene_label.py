@@ -165,6 +165,14 @@ def test_model_file_errors(tmp_path):
     (tmp_path / "other.json").write_text(json.dumps(d))
     with pytest.raises(ValueError, match="other features"):
         S.load_model(tmp_path / "other.json")
+    m.info = {"loss": float("nan")}                     # a record's NaN: null, strict JSON
+    json.loads(S.save_model(m, tmp_path / "info.json").read_text(),
+               parse_constant=lambda c: pytest.fail(f"non-strict JSON constant {c}"))
+    assert json.loads((tmp_path / "info.json").read_text())["info"]["loss"] is None
+    m.coef[0] = float("nan")                           # the model itself: refused
+    with pytest.raises(ValueError, match="non-finite"):
+        S.save_model(m, tmp_path / "nan.json")
+    assert not (tmp_path / "nan.json").exists()
 
 
 def test_sample_weights_balance_groups_and_classes():

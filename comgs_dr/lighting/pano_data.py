@@ -115,10 +115,11 @@ def map_files(folder, exclude=(), check_rows: int = 16) -> list:
 
 def trained_maps(path) -> frozenset | None:
     """The real maps (file stems) a lighting model was fitted on, from its model card: the
-    JSON beside a ``.pt`` (``train-completion``: ``data.poly_haven``; ``train-light-head``:
-    ``maps``) or the ``train-scene-label`` model itself (``info.maps``). None when there is
-    no card or it does not say (a model saved by hand). Evaluation on a map in this set is
-    not a held-out score."""
+    JSON beside a ``.pt`` (``train-completion``: ``data.poly_haven``, plus ``data.init_maps``,
+    those of the ``--init`` weights it was fine-tuned from; ``train-light-head``: ``maps``)
+    or the ``train-scene-label`` model itself (``info.maps``). None when there is no card or
+    it does not say (a model saved by hand). Evaluation on a map in this set is not a
+    held-out score."""
     p = Path(path)
     card = p if p.suffix.lower() == ".json" else p.with_suffix(".json")
     try:
@@ -132,7 +133,10 @@ def trained_maps(path) -> frozenset | None:
         for k in keys:
             v = v.get(k) if isinstance(v, dict) else None
         if isinstance(v, list) and all(isinstance(x, str) for x in v):
-            return frozenset(v)
+            init = d.get("data", {}).get("init_maps") if keys[0] == "data" else None
+            extra = init if isinstance(init, list) and all(isinstance(x, str) for x in init) \
+                else []
+            return frozenset(v) | frozenset(extra)
     return None
 
 

@@ -26,6 +26,7 @@ import numpy as np
 
 from comgs_dr.core.colorspace import LUMA, srgb_decode
 from comgs_dr.core.equirect import pixel_solid_angles
+from comgs_dr.core.runlog import json_safe
 from comgs_dr.lighting.hdr import SAT, area_resize_equirect, check_ldr_mask
 
 __all__ = ["FEATURES", "label_features", "LabelModel", "fit_logistic", "load_model",
@@ -192,8 +193,11 @@ def save_model(model: LabelModel, path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     d = asdict(model)
+    nums = np.array([*model.mean, *model.std, *model.coef, model.bias], np.float64)
+    if not np.isfinite(nums).all():
+        raise ValueError(f"save_model: the model has non-finite parameters; not written to {path}")
     d["features"] = list(model.features)
-    path.write_text(json.dumps({"format": _FORMAT, **d}, indent=1))
+    path.write_text(json.dumps(json_safe({"format": _FORMAT, **d}), indent=1, allow_nan=False))
     return path
 
 

@@ -350,11 +350,21 @@ def train(cfg: TrainCompletionConfig, progress: bool = True, command: str | None
             "parameters": C.count_parameters(model),
             "data": {"maps": int(len(data["maps"])), "masks": int(len(data["masks"])),
                      "poly_haven": sorted({str(n) for n, s in zip(data["names"], data["source"])
-                                           if s == 0}), "held_out": list(cfg.held_out)},
+                                           if s == 0}), "held_out": list(cfg.held_out),
+                     "init_maps": _init_maps(cfg.init)},
             "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()},
             "torch": torch.__version__, "history": hist}
-    out_path.with_suffix(".json").write_text(json.dumps(info, indent=1))
+    out_path.with_suffix(".json").write_text(json.dumps(runlog.json_safe(info), indent=1,
+                                                        allow_nan=False))
     return info
+
+
+def _init_maps(init) -> list | None:
+    """The real maps the ``--init`` weights were fitted on (their model card,
+    ``pano_data.trained_maps``), so the fine-tuned card names every map the weights saw;
+    None without ``--init`` or when its card does not say."""
+    maps = None if init is None else P.trained_maps(init)
+    return None if maps is None else sorted(maps)
 
 
 def add_arguments(ap) -> None:

@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from comgs_dr.core.colorspace import LUMA
 from comgs_dr.core.equirect import pixel_solid_angles
+from comgs_dr.core.runlog import json_safe
 from comgs_dr.core.variant import set_variant
 from comgs_dr.data import pano_masks
 from comgs_dr.data.synthetic import shared_data_dir
@@ -257,7 +258,8 @@ def train(cfg: TrainLightHeadConfig, progress: bool = True, command: str = "") -
             "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()},
             "history": hist}
     L.save_head(head, cfg.out, info)
-    Path(cfg.out).with_suffix(".json").write_text(json.dumps(info, indent=1))
+    Path(cfg.out).with_suffix(".json").write_text(json.dumps(json_safe(info), indent=1,
+                                                             allow_nan=False))
     return info
 
 

@@ -49,9 +49,11 @@ def zero_nonfinite_grads(opt, keys) -> int:
 
 
 def write_log(out_dir: Path, log: list, summary: dict | None = None, indent: int | None = 1) -> None:
-    """``train_log.json``: {"summary": ..., "log": [records]} (atomic)."""
+    """``train_log.json``: {"summary": ..., "log": [records]} (atomic; a diverged loss's
+    NaN is written as null, ``runlog.json_safe``: strict JSON parsers reject NaN)."""
     atomic_write_text(Path(out_dir) / LOG_NAME,
-                      json.dumps({"summary": summary, "log": log}, indent=indent))
+                      json.dumps(runlog.json_safe({"summary": summary, "log": log}),
+                                 indent=indent, allow_nan=False))
 
 
 class BestState:
