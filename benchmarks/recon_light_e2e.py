@@ -178,7 +178,8 @@ def main(argv=None):
                 if r["meta"].get("p_outdoor") is not None:
                     print(f"<!-- {p.stem}: label auto -> {r['meta']['label']} "
                           f"(p(outdoor) {r['meta']['p_outdoor']:.2f}) -->", flush=True)
-                print(f"<!-- {p.stem}: sky seen {r['meta']['seen_sky_fraction']:.2f}, of it "
+                print(f"<!-- {p.stem}: upper hemisphere seen {r['meta']['seen_sky_fraction']:.2f} "
+                      f"(open sky {r['meta']['open_sky_fraction'] or 0.0:.2f}), of it "
                       f"clipped {r['meta']['clipped_sky_fraction']:.2f} -->", flush=True)
                 rec = bgenv.load_clipped(run)
                 clip = None if rec is None else bgenv.splat_record(rec, *r["hdr"].shape[:2])

@@ -122,6 +122,12 @@ def test_estimate_light_uses_the_background(trained):
     m = with_bg["input"]["mask"]
     sky = slice(9, 15)                                 # 6..39 degrees above the horizon
     assert m[sky].mean() > without["input"]["mask"][sky].mean() + 0.2
+    # the open sky (the background's share) is part of what is seen above the horizon
+    mw = with_bg["meta"]
+    assert without["meta"]["open_sky_fraction"] is None
+    assert 0.05 < mw["open_sky_fraction"] <= mw["seen_sky_fraction"] + 1e-9
+    from comgs_dr.stages.estimate_light_files import _sky_text
+    assert f"(open sky {100 * mw['open_sky_fraction']:.1f}%)" in _sky_text(mw)
     with pytest.raises(FileNotFoundError, match="no such folder"):
         estimate_light(run / "point_cloud.ply", pos,
                        EstimateConfig(background=str(run / "nowhere"), **cfg), FillBackend("mean"))

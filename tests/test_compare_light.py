@@ -37,7 +37,7 @@ def test_same_map_scores_perfect_and_a_brighter_one_shows_its_power(tmp_path, ca
     assert json.loads((tmp_path / "c.json").read_text())["light_angle_deg"] < 6.0
 
 
-def test_octahedral_estimate_and_a_moved_sun(tmp_path):
+def test_octahedral_estimate_and_a_moved_sun(tmp_path, capsys):
     t = write_exr(tmp_path / "true.exr", _sun_map(32), "equirect")
     o = write_exr(tmp_path / "est_oct.exr", equirect_to_oct_np(_sun_map(32), 32), "octahedral")
     assert cli.main(["compare-light", str(o), str(t), "--json", str(tmp_path / "o.json")]) == 0
@@ -46,7 +46,18 @@ def test_octahedral_estimate_and_a_moved_sun(tmp_path):
     assert cli.main(["compare-light", str(moved), str(t), "--json", str(tmp_path / "m.json")]) == 0
     el = np.radians(90.0 - 8.5 / 32 * 180.0)          # row 8 of 32; moved 90° in azimuth
     expect = np.degrees(np.arccos(np.sin(el) ** 2))
-    assert abs(json.loads((tmp_path / "m.json").read_text())["light_angle_deg"] - expect) < 1.0
+    m = json.loads((tmp_path / "m.json").read_text())
+    assert abs(m["light_angle_deg"] - expect) < 1.0
+    # both dominant directions are printed (elevation / azimuth) and recorded
+    lines = {ln.split(":")[0]: ln.rsplit("  ", 1)[-1] for ln in capsys.readouterr().out.splitlines()
+             if ln.startswith("dominant light of the")}
+    (el_e, az_e), (el_t, az_t) = (tuple(float(v) for v in lines[f"dominant light of the {k}"]
+                                        .split(" / ")) for k in ("estimate", "truth"))
+    assert abs(el_e - np.degrees(el)) < 1.0 and abs(el_t - np.degrees(el)) < 1.0
+    assert abs((az_t - az_e) % 360.0 - 90.0) < 1.0                 # moved by 16 of 64 columns
+    np.testing.assert_allclose(np.degrees(np.arccos(np.dot(m["est_light_direction"],
+                                                           m["true_light_direction"]))),
+                               m["light_angle_deg"], atol=1e-6)
 
 
 def test_missing_file_is_a_clear_error(tmp_path, capsys):

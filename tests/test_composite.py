@@ -363,6 +363,14 @@ def test_compose_cache_recomputes_only_what_a_moved_object_touches(tmp_path):
     assert m["frames"] == 4 and len(m["per_frame"]) == 4 and np.isfinite(m["psnr"])
     assert (out / "renders" / "sop" / "r_3.png").is_file()
     assert json.loads((out / "metrics_sop.json").read_text())["ssim"] == m["ssim"]
+    # the dataset folder itself: its test views, loaded as step 1 loads them (same frames)
+    first = np.asarray(Image.open(out / "renders" / "sop" / "r_3.png"), np.float64)
+    m2 = render_comp(out, tmp_path / "data", "sop", rays=16, progress=False)
+    assert m2["frames"] == 4 and m2["resolution"] == [24, 24]
+    again = np.asarray(Image.open(out / "renders" / "sop" / "r_3.png"), np.float64)
+    assert np.abs(again - first).max() <= 1.0
+    with pytest.raises(FileNotFoundError, match="dataset folder not found"):
+        render_comp(out, tmp_path / "nowhere", "sop", progress=False)
     with pytest.raises(ValueError, match="no such object"):
         render_comp(out, tmp_path / "data" / "transforms_test.json", "sop", gt,
                     {"zebra": "albedo=1,0,0"}, progress=False)

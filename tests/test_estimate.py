@@ -207,7 +207,7 @@ def test_near_tie_of_clipped_lights_is_reported(params, monkeypatch, caplog):
 
 @pytest.mark.parametrize("seen, clipped, warning", [
     (0.7, 0.1, None), (0.7, 0.6, "of the observed sky is clipped"),
-    (0.05, 0.1, "of the sky (or ceiling)"), (0.05, 0.6, "of the sky (or ceiling)")])
+    (0.05, 0.1, "of the upper hemisphere"), (0.05, 0.6, "of the upper hemisphere")])
 def test_sky_checks_are_recorded_and_warned(params, monkeypatch, caplog, seen, clipped, warning):
     """meta records how much of the sky the capture saw and how much of that is clipped, both
     read from the backend's input (forced values here; the maths: tests/test_hdr.py). Below
@@ -229,7 +229,8 @@ def test_sky_checks_are_recorded_and_warned(params, monkeypatch, caplog, seen, c
                            backends.FillBackend("push_pull"))
     assert r["meta"]["seen_sky_fraction"] == seen
     assert r["meta"]["clipped_sky_fraction"] == clipped
-    texts = ("of the observed sky is clipped", "of the sky (or ceiling)")
+    assert r["meta"]["open_sky_fraction"] is None             # no learned background
+    texts = ("of the observed sky is clipped", "of the upper hemisphere")
     assert [t in caplog.text for t in texts] == [t == warning for t in texts]
     if warning == texts[1]:
         assert "--background env" in caplog.text             # the test scene has no sky

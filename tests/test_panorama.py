@@ -270,6 +270,9 @@ def test_composite_background_fills_the_sky_only_where_observed():
     n = res["normal"][top, : W // 2]
     assert np.allclose(n, -_pixel_dirs()[top, : W // 2], atol=1e-5)        # facing the point
     assert res["meta"]["coverage"] > out["meta"]["coverage"] + 0.2
+    bg = res["background_alpha"]                     # the background's share: open sky
+    np.testing.assert_allclose(bg, observed * (1 - np.clip(a0, 0, 1)), atol=1e-6)
+    np.testing.assert_allclose(a, a0 + bg, atol=1e-6)
     lin = res["rgb"][top, : W // 2]
     assert np.allclose(lin, ((np.array([0.3, 0.5, 0.9]) + 0.055) / 1.055) ** 2.4, atol=1e-4)
     with pytest.raises(ValueError, match="do not match"):

@@ -388,6 +388,13 @@ def test_llff_cameras_project(tmp_path, rng, scale):
     assert auto.meta["format"] == "llff"
     ups = np.array([v.camera.to_world[:3, 1] for v in auto.views])
     assert np.all(ups[:, 2] > 0.97)
+    if scale == 1:              # render-comp --cameras poses_bounds.npy: the same test views
+        from comgs_dr.data.comp_folder import camera_source
+        cs = camera_source(tmp_path / "poses_bounds.npy", np.diag([2.0, 2, 2, 1]), res=(20, 10))
+        assert [c["name"] for c in cs] == ["IMG_000", "IMG_008"]
+        for c, v in zip(cs, auto.test):         # the loader's frame; world_from_source unused
+            np.testing.assert_array_equal(c["to_world"], v.camera.to_world)
+            assert (c["width"], c["height"]) == (20, 10) and c["fov_x_deg"] == v.camera.fov_x_deg
 
 
 # ----------------------------------------------------------------------------- camera

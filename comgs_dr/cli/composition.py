@@ -121,13 +121,19 @@ def _cmd_compose(args) -> int:
 
 def _add_render_comp(sub) -> None:
     p = sub.add_parser(
-        "render-comp", help="render a composition along NeRF-synthetic cameras",
+        "render-comp", help="render a composition along NeRF-synthetic cameras or a "
+                            "dataset's test views",
         description="Render COMP_DIR (from `comgs compose`) along the cameras of a "
-                    "NeRF-synthetic transforms.json into COMP_DIR/renders/<variant>/ and, with "
+                    "NeRF-synthetic transforms.json (the scene dataset's frame), or the test "
+                    "views of a dataset folder or poses_bounds.npy (COLMAP, LLFF, "
+                    "NeRF-synthetic, loaded as step 1 loads it), into "
+                    "COMP_DIR/renders/<variant>/ and, with "
                     "--gt-dir, score against GT_DIR/<basename>.png into "
                     "COMP_DIR/metrics_<variant>.json (psnr, ssim, frame_seconds, per frame).")
     p.add_argument("comp_dir", metavar="COMP_DIR")
-    p.add_argument("--cameras", required=True, metavar="transforms.json")
+    p.add_argument("--cameras", required=True, metavar="transforms.json|DATASET",
+                   help="a NeRF-synthetic transforms*.json, or a dataset folder (or its "
+                        "poses_bounds.npy): its test views, every view if it has none")
     p.add_argument("--variant", choices=RENDER_VARIANTS, default="sop",
                    help="sop (cached shadows), trace (traced per frame), noshadow, paste")
     p.add_argument("--gt-dir", metavar="DIR", help="ground-truth PNGs named like the frames")

@@ -145,6 +145,12 @@ def _equirect(path) -> np.ndarray:
     return envmap.oct_to_equirect_np(img, 2 * img.shape[0]) if layout == "octahedral" else img
 
 
+def _el_az(d) -> str:
+    """"elevation / azimuth" in degrees of a Z-up direction (azimuth atan2(y, x))."""
+    x, y, z = (float(v) for v in d)
+    return f"{np.degrees(np.arcsin(np.clip(z, -1.0, 1.0))):.1f} / {np.degrees(np.arctan2(y, x)):.1f}"
+
+
 def _cmd_compare_light(args) -> int:
     est, gt = _equirect(args.estimate), _equirect(args.truth)
     if est.shape[0] < gt.shape[0]:                      # compare (and show) at the coarser size
@@ -157,6 +163,10 @@ def _cmd_compare_light(args) -> int:
     re, rg = m.get("light_up_irradiance_ratio_est"), m.get("light_up_irradiance_ratio_gt")
     if m.get("light_angle_deg") is not None:
         rows.append(("dominant light angle °", f"{m['light_angle_deg']:.2f}"))
+    for key, name in (("est_light_direction", "estimate"), ("true_light_direction", "truth")):
+        if m.get(key) is not None:
+            rows.append((f"dominant light of the {name}: elevation / azimuth °",
+                         _el_az(m[key])))
     if re is not None and rg is not None:
         rows.append(("E(light)/E(up): estimate / truth / error",
                      f"{re:.3f} / {rg:.3f} / {100 * (re / rg - 1):+.1f} %"))

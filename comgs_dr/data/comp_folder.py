@@ -204,6 +204,40 @@ def read_cameras(path, world_from_source=None, res=None) -> list[dict]:
     return out
 
 
+def dataset_cameras(path, res=None) -> list[dict]:
+    """Cameras of a captured dataset, as :func:`read_cameras` gives them: the test views of a
+    folder the loaders read (NeRF-synthetic, COLMAP, LLFF; or its ``poses_bounds.npy`` /
+    transforms file), every view when it holds no test split. They are loaded as step 1
+    loads them, so they are already in the reconstruction's frame (no
+    ``world_from_source``). Image size: ``res`` (int or (w, h)), else the dataset's. A
+    principal point off the centre is not modelled (as in step 1's rendering)."""
+    from comgs_dr.data.load import load_dataset
+    data = load_dataset(path)
+    views = data.test or data.train
+    if res is not None:
+        w, h = (res, res) if isinstance(res, int) else res
+    out = []
+    for v in views:
+        c = v.camera
+        out.append({"name": Path(v.name).stem, "to_world": np.asarray(c.to_world, np.float64),
+                    "fov_x_deg": float(c.fov_x_deg),
+                    "width": c.width if res is None else w,
+                    "height": c.height if res is None else h})
+    return out
+
+
+def camera_source(path, world_from_source=None, res=None) -> list[dict]:
+    """``render-comp --cameras``: a NeRF-synthetic ``transforms*.json`` (:func:`read_cameras`,
+    in the scene dataset's frame) or a dataset folder / ``poses_bounds.npy``
+    (:func:`dataset_cameras`)."""
+    p = Path(path)
+    if p.suffix.lower() == ".json":
+        return read_cameras(p, world_from_source, res)
+    if not p.exists():
+        raise FileNotFoundError(f"camera file or dataset folder not found: {p}")
+    return dataset_cameras(p, res)
+
+
 def sensor_dict(cam: dict, pixel_format: str = "rgb", clip: dict | None = None) -> dict:
     """Sensor of a camera of :func:`read_cameras`; ``clip``: near/far planes
     (:func:`clip_for`)."""

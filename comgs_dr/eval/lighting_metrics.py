@@ -367,7 +367,10 @@ def compare_maps(est, gt, size: int = 48) -> dict:
     """Scores of an estimated map against the true one (both linear equirect; ``est`` is
     area-resampled to ``gt``'s size): array-of-spheres si-RMSE / angular error (diffuse and
     matte silver), the angle between the dominant lights (``hdr.extract_lights``), and the
-    irradiance ratio E(facing the true dominant light) / E(facing up) of each map.
+    irradiance ratio E(facing the true dominant light) / E(facing up) of each map. The two
+    dominant directions are returned (``true_light_direction``, ``est_light_direction``):
+    they are extracted at ``gt``'s size, so with a coarse truth they can differ from the
+    lights ``estimate-light`` lists at the estimate's own size.
     ValueError for an all-zero true map."""
     from comgs_dr.lighting.hdr import extract_lights
     gt = _check_map(gt, "compare_maps gt")
@@ -383,6 +386,7 @@ def compare_maps(est, gt, size: int = 48) -> dict:
         d = lg[0]["direction"]
         out["true_light_direction"] = [float(x) for x in d]
         if le:
+            out["est_light_direction"] = [float(x) for x in le[0]["direction"]]
             out["light_angle_deg"] = float(np.degrees(np.arccos(np.clip(
                 float(le[0]["direction"] @ d), -1.0, 1.0))))
         up = np.array([0.0, 0.0, 1.0])

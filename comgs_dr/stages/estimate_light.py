@@ -259,6 +259,12 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
 
     sky_seen = hdr.seen_sky_fraction(mask)
     sky_clip = hdr.clipped_sky_fraction(rgb, mask)
+    open_sky = (hdr.seen_sky_fraction(trace["background_alpha"])
+                if "background_alpha" in trace else None)
+    if open_sky is not None:
+        log.info("estimate_light: %.1f%% of the upper hemisphere is observed, %.1f%% is open "
+                 "sky (step 1's learned background), the rest surfaces", 100 * sky_seen,
+                 100 * open_sky)
     if sky_seen < hdr.SEEN_SKY_WARN:
         if bg_dir is not None:
             fix = "add views that see the sky, or give the map (compose --env)"
@@ -268,8 +274,8 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
         else:
             fix = "if the capture saw the sky, reconstruct with --background env (step 1 " \
                   "keeps no sky without it); else add sky views or give the map (compose --env)"
-        log.warning("estimate_light: the capture saw %.1f%% of the sky (or ceiling) above the "
-                    "placement (warned below %.0f%%): the lights up there are the completion's "
+        log.warning("estimate_light: the capture saw %.1f%% of the upper hemisphere (sky, "
+                    "ceiling, anything above the horizon) at the placement (warned below %.0f%%): the lights up there are the completion's "
                     "guess (measured through step 1 without sky views: E(sun)/E(up) 23-81%% "
                     "low, the light 40-46 deg off); %s", 100 * sky_seen,
                     100 * hdr.SEEN_SKY_WARN, fix)
@@ -331,7 +337,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     meta = {"source": source, "position": trace["meta"]["position"], "label": label,
             "label_requested": cfg.label, "p_outdoor": p_outdoor,
             "evs": list(evs), "backend": _backend_name(backend), "colour_space": space,
-            "coverage": cov, "seen_sky_fraction": sky_seen,
+            "coverage": cov, "seen_sky_fraction": sky_seen, "open_sky_fraction": open_sky,
             "clipped_sky_fraction": sky_clip, "nonfinite_pixels": n_bad,
             "saturation_limit": hdr.saturation_limit(evs), "config": _config_dict(cfg),
             "trace": jsonable(trace["meta"]), "radiance": "linear",

@@ -71,11 +71,16 @@ def write_outputs(result: dict, out_path) -> dict:
 
 
 def _sky_text(meta: dict) -> str:
-    """", sky seen X%, of it clipped Y%" when the meta holds them, else ""."""
+    """", upper hemisphere seen X% [(open sky Z%)], of it clipped Y%" when the meta holds
+    them, else "". ``seen_sky_fraction`` counts whatever is observed above the horizon (a
+    wall, a ceiling, floaters); ``open_sky_fraction``, when step 1 learned a background, the
+    share of it that is that background (the sky itself)."""
     if meta.get("seen_sky_fraction") is None or meta.get("clipped_sky_fraction") is None:
         return ""
-    return (f", sky seen {100 * meta['seen_sky_fraction']:.1f}%, of it clipped "
-            f"{100 * meta['clipped_sky_fraction']:.1f}%")          # as the warnings print them
+    sky = meta.get("open_sky_fraction")
+    sky = "" if sky is None else f" (open sky {100 * sky:.1f}%)"
+    return (f", upper hemisphere seen {100 * meta['seen_sky_fraction']:.1f}%{sky}, of it "
+            f"clipped {100 * meta['clipped_sky_fraction']:.1f}%")   # as the warnings print them
 
 
 def preview_image(result: dict, panel_width: int = 512):

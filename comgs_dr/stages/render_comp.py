@@ -1,4 +1,5 @@
-"""``comgs render-comp``: render a composition folder along NeRF-synthetic cameras.
+"""``comgs render-comp``: render a composition folder along NeRF-synthetic cameras, or the
+test views of a captured dataset (COLMAP, LLFF, NeRF-synthetic folder).
 
 Variants (the paper's composition table): ``sop`` (shadows from the cached probes),
 ``trace`` (occlusion traced per frame), ``noshadow`` (objects relit, no shadows on the
@@ -45,7 +46,8 @@ def load_comp_scene(comp_dir, variant: str = "sop", materials: dict | None = Non
 def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
                 materials: dict | None = None, res=None, rays: int | None = None,
                 seed: int = 0, progress: bool = True) -> dict:
-    """Render every camera of ``cameras`` (a NeRF-synthetic ``transforms*.json``); returns
+    """Render every camera of ``cameras`` (a NeRF-synthetic ``transforms*.json``, or a dataset
+    folder / ``poses_bounds.npy``: its test views, ``comp_folder.camera_source``); returns
     the metrics dict (written to ``metrics_<variant>.json`` when ``gt_dir`` is given)."""
     if variant not in VARIANTS:
         raise ValueError(f"render-comp: variant must be one of {', '.join(VARIANTS)}, got {variant!r}")
@@ -57,7 +59,7 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
         raise ValueError(f"render-comp: rays must be an integer >= 1, got {rays!r}")
     comp_dir = Path(comp_dir)
     manifest = comp_folder.read_manifest(comp_dir)
-    cams = comp_folder.read_cameras(cameras, manifest.get("world_from_source"), res)
+    cams = comp_folder.camera_source(cameras, manifest.get("world_from_source"), res)
     gts = {}
     if gt_dir is not None:
         missing = [c["name"] for c in cams if not (Path(gt_dir) / f"{c['name']}.png").is_file()]

@@ -232,6 +232,8 @@ def composite_background(trace: dict, radiance: np.ndarray, observed: np.ndarray
     coverage: alpha' = W + T·o, colours are the coverage-weighted mix, normals of the
     background face the position (−d), the depth stays the surfels'. Directions from the
     position are the capture's directions: the background is at infinity.
+    ``background_alpha`` [H, W]: the background's share T·o of each pixel (open sky, where
+    ``alpha`` also counts the surfels).
     """
     H, Wd = trace["alpha"].shape
     if radiance.shape != (H, Wd, 3) or observed.shape != (H, Wd):
@@ -256,6 +258,7 @@ def composite_background(trace: dict, radiance: np.ndarray, observed: np.ndarray
     nlen = np.linalg.norm(n, axis=-1, keepdims=True)
     out["normal"] = np.where(nlen > 1e-12, n / np.maximum(nlen, 1e-12), 0.0).astype(np.float32)
     out["alpha"] = a.astype(np.float32)
+    out["background_alpha"] = o.astype(np.float32)
     meta = dict(trace["meta"])
     meta["coverage_surfels"] = meta.get("coverage")
     meta["coverage"] = coverage(a)
