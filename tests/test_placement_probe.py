@@ -52,6 +52,19 @@ def test_sub_pixel_sun_keeps_its_power(row):
     assert np.unravel_index(np.argmax(probe @ LUMA), (16, 32)) == (row // 8, 77 // 8)
 
 
+def test_probe_in_a_turned_frame():
+    """world_from_probe = a quarter turn about +Z: the probe is the world's probe turned by a
+    quarter of its width (u = 0.5 − φ/2π: a direction at φ in the probe is at φ + 90° in the
+    world, a quarter width to the left)."""
+    img = _smooth_map(64, 128)
+    world = render_probe(_scene(img), [0.0, 0.0, 0.0], height=16, spp_side=4)
+    quarter = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    turned = render_probe(_scene(img), [0.0, 0.0, 0.0], height=16, spp_side=4,
+                          world_from_probe=quarter)
+    np.testing.assert_allclose(turned, np.roll(world, 8, axis=1), atol=0.02 * world.max())
+    assert np.abs(turned - world).max() > 0.1
+
+
 def test_occluder_hides_the_sky_above():
     """A black plane 1 unit above the point: directions up to ~60° from the zenith see it."""
     plane = {"roof": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate(
@@ -69,7 +82,9 @@ def test_occluder_hides_the_sky_above():
                                      (dict(position=[0, np.nan, 0]), "3 finite"),
                                      (dict(height=0), "height must be in"),
                                      (dict(height=5000), "height must be in"),
-                                     (dict(spp_side=0), "spp_side")])
+                                     (dict(spp_side=0), "spp_side"),
+                                     (dict(world_from_probe=np.diag([1.0, 1, -1])), "rotation"),
+                                     (dict(world_from_probe=np.eye(2)), "rotation")])
 def test_bad_arguments_are_clear_errors(kw, msg):
     args = dict(position=[0.0, 0.0, 0.0], height=4, spp_side=1) | kw
     with pytest.raises(ValueError, match=msg):

@@ -77,8 +77,8 @@ def _add_make_dataset(sub) -> None:
     ll = kinds.add_parser(
         "llff", help="a forward-facing LLFF capture without a point cloud (poses_bounds.npy)",
         description="A hand-held forward-facing capture of a textured table-top (a backdrop "
-                    "wall, a floor, a sphere, a box, a card, a pillar; constant sky and sun) on "
-                    "a jittered ROWS x COLS grid: poses_bounds.npy, images/ and images_<k>/, "
+                    "wall, a floor, a sphere, a box, a card, a pillar; constant sky and sun, or "
+                    "--envmap MAP) on a jittered ROWS x COLS grid: poses_bounds.npy, images/ and images_<k>/, "
                     "meta.json, and no points (comgs_dr.data.llff_synthetic). Reconstruct it "
                     "with `comgs reconstruct DIR --scene -r K`.")
     ll.add_argument("--out", required=True, metavar="DIR", help="output directory")
@@ -91,6 +91,19 @@ def _add_make_dataset(sub) -> None:
     ll.add_argument("--spp", type=int, default=16, metavar="S")
     ll.add_argument("--seed", type=int, default=0, metavar="S")
     ll.add_argument("--variant", default="auto", help="Mitsuba variant (default auto)")
+    ll.add_argument("--envmap", metavar="MAP", help="an equirect .hdr/.exr lights the scene "
+                    "(Z-up) instead of the constant sky and sun, and is its sky")
+    ll.add_argument("--envmap-scale", type=float, default=None, metavar="S", help="its "
+                    "exposure (default: auto, the sky in range and a sun clipped)")
+    ll.add_argument("--envmap-rotate", type=float, default=0.0, metavar="DEG", help="turn "
+                    "the map about +Z by DEG (the views look along +Y: put its sun in view)")
+    ll.add_argument("--no-backdrop", action="store_true", help="no backdrop wall: the views "
+                    "see the map's horizon and sky")
+    ll.add_argument("--pitch", type=float, default=0.0, metavar="DEG", help="tilt the cameras "
+                    "up by DEG (more sky in view)")
+    ll.add_argument("--probe-height", type=int, default=0, metavar="H", help="write "
+                    "probes/center.exr (H rows), the true light at the placement, and "
+                    "probes/probes.json (its position in the reconstruction's frame)")
     ll.add_argument("--quiet", action="store_true", help="no per-view lines")
     c = kinds.add_parser(
         "composition", help="a scene, objects and path-traced composites of them (ground truth)",
@@ -193,16 +206,32 @@ def _make_llff(args) -> int:
             raise ValueError(f"make-dataset llff: {flag} must be >= {lo}, got {v}")
     if args.rows * args.cols < 2:
         raise ValueError("make-dataset llff: need at least 2 views (--rows x --cols)")
+    if args.envmap is None and (args.envmap_scale is not None):
+        raise ValueError("make-dataset llff: --envmap-scale needs --envmap")
+    if args.envmap_scale is not None and not 0 < args.envmap_scale < float("inf"):
+        raise ValueError(f"make-dataset llff: --envmap-scale must be > 0, got {args.envmap_scale}")
+    if not -60.0 <= args.pitch <= 60.0 or not 0 <= args.probe_height <= 1024:
+        raise ValueError(f"make-dataset llff: --pitch must lie in [-60, 60] degrees and "
+                         f"--probe-height in [0, 1024], got {args.pitch}, {args.probe_height}")
     if any(k < 1 or args.width % k or args.height % k for k in args.downscale):
         raise ValueError(f"make-dataset llff: each --downscale must be >= 1 and divide "
                          f"{args.width}x{args.height}, got {args.downscale}")
     cfg = LLFFDatasetConfig(out_dir=args.out, rows=args.rows, cols=args.cols, width=args.width,
                             height=args.height, downscales=tuple(args.downscale), spp=args.spp,
-                            seed=args.seed, variant=set_variant(args.variant))
+                            seed=args.seed, variant=set_variant(args.variant),
+                            envmap=args.envmap, envmap_scale=args.envmap_scale,
+                            envmap_rotate_deg=args.envmap_rotate,
+                            backdrop=not args.no_backdrop, pitch_deg=args.pitch,
+                            probe_height=args.probe_height)
     m = make_llff_dataset(cfg, progress=not args.quiet)
     print(f"wrote {len(m['images'])} views ({len(m['test_images'])} of them LLFF test views), "
           f"{args.width}x{args.height} + images_{{{','.join(map(str, args.downscale))}}}, "
           f"poses_bounds.npy, no points, to {args.out} in {m['seconds']:.1f} s")
+    if m["probe"] is not None:
+        x, y, z = m["probe"]["position"]
+        print(f"true light at the placement: {m['probe']['file']}; estimate it with "
+              f"`comgs estimate-light RUN/point_cloud.ply --at {x:.3f} {y:.3f} {z:.3f} ...` "
+              f"and score with `comgs compare-light EST.exr {m['probe']['file']}`")
     return 0
 
 

@@ -21,6 +21,13 @@ LLFF's ``imgs2poses.py`` writes, without any points::
     images_<k>/        the same area-downscaled by k (k in ``downscales``), as LLFF ships
     meta.json          generator settings, Mitsuba ``to_world`` per image, test split
 
+With ``envmap`` (``make-dataset llff --envmap MAP``) a real equirect map lights the scene
+instead (exposed by ``pano_data.auto_exposure`` unless ``envmap_scale``: the sky in range, a
+sun clipped, as a camera would), ``backdrop=False`` removes the wall so the views see the
+map's horizon, ``pitch_deg`` tilts them up to see more sky, and ``probe_height`` writes the
+true light at :data:`PLACEMENT` (``probes/center.exr`` + ``probes.json``, in the
+reconstruction's frame) to score ``estimate-light`` against.
+
 ``comgs reconstruct DIR --scene -r 8`` reads ``images/`` (the loader prefers it) and
 area-averages 8x8 blocks, i.e. the same pixels as ``images_8/``. With the LLFF hold-out
 (every 8th image by name is a test view) 20 images give 17 train + 3 test views.
@@ -40,7 +47,11 @@ from comgs_dr.core.colorspace import srgb_encode
 from comgs_dr.core.hostarray import to_jit
 from comgs_dr.data.images import downscale, write_png8
 from comgs_dr.data.synthetic_io import activate_variant
+from comgs_dr.data.placement_probe import render_probe
+from comgs_dr.data.synthetic import ENVMAP_TO_WORLD
 from comgs_dr.data.types import MITSUBA_FROM_LLFF, Camera
+from comgs_dr.lighting.envmap import load_envmap, read_envmap_file, write_exr
+from comgs_dr.lighting.pano_data import auto_exposure
 
 GENERATOR_VERSION = "comgs_dr.data.llff_synthetic/1"
 
@@ -62,6 +73,18 @@ class LLFFDatasetConfig:
     jitter_deg: float = 1.5               # ... rotation jitter (degrees) per view
     seed: int = 0
     variant: str | None = None            # None: keep the active JIT AD variant
+    envmap: str | None = None             # an equirect map lights the scene instead of the
+                                          # constant sky and the sun (and is its sky)
+    envmap_scale: float | None = None     # None: pano_data.auto_exposure (sky in range)
+    envmap_rotate_deg: float = 0.0        # the map turned about +Z (the views look along +Y)
+    backdrop: bool = True                 # False: no wall, the views see the map's horizon
+    pitch_deg: float = 0.0                # the cameras look up by this much (more sky)
+    probe_height: int = 0                 # > 0: probes/center.exr, the true light at PLACEMENT
+
+
+#: Where a composited object would sit: on the floor between the sphere, the box and the card
+#: (world, Z-up), 0.3 above it. ``probe_height`` > 0 writes the light arriving there.
+PLACEMENT = (0.2, 3.8, -1.1)
 
 
 # ----------------------------------------------------------------------------- textures
@@ -137,14 +160,24 @@ def _diffuse(img: np.ndarray) -> dict:
                                                 "raw": True, "filter_type": "bilinear"}}
 
 
-def scene_dict(textures: dict[str, np.ndarray]) -> dict:
-    """Mitsuba scene dict (no sensor): the forward-facing test scene (see the module doc)."""
+def scene_dict(textures: dict[str, np.ndarray], env_bitmap=None, env_scale: float = 1.0,
+               backdrop: bool = True, max_depth: int = 4, env_rotate_deg: float = 0.0) -> dict:
+    """Mitsuba scene dict (no sensor): the forward-facing test scene (see the module doc),
+    path traced (``max_depth``, emitters visible). ``env_bitmap``: an equirect map (Z-up, the
+    package's convention) times ``env_scale``, turned by ``env_rotate_deg`` about +Z, instead
+    of the constant sky and the sun; ``backdrop`` False: no wall."""
     T = mi.ScalarTransform4f
-    return {
+    light = ({"sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.55, 0.6, 0.7]}},
+              "sun": {"type": "directional", "direction": [0.45, 0.6, -0.65],
+                      "irradiance": {"type": "rgb", "value": [2.6, 2.4, 2.1]}}}
+             if env_bitmap is None else
+             {"sky": {"type": "envmap", "bitmap": env_bitmap, "scale": float(env_scale),
+                      "to_world": T().rotate([0, 0, 1], float(env_rotate_deg))
+                      @ T(ENVMAP_TO_WORLD.tolist())}})
+    d = {
         "type": "scene",
-        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.55, 0.6, 0.7]}},
-        "sun": {"type": "directional", "direction": [0.45, 0.6, -0.65],
-                "irradiance": {"type": "rgb", "value": [2.6, 2.4, 2.1]}},
+        "integrator": {"type": "path", "max_depth": int(max_depth), "hide_emitters": False},
+        **light,
         # rectangle: [-1, 1]^2 in local XY, normal +Z; rotate +90 deg about X -> normal -Y
         "wall": {"type": "rectangle", "bsdf": _diffuse(textures["wall"]),
                  "to_world": T().translate([0, 9.0, 1.0]) @ T().rotate([1, 0, 0], 90) @ T().scale([9.0, 6.0, 1.0])},
@@ -161,10 +194,14 @@ def scene_dict(textures: dict[str, np.ndarray]) -> dict:
         "pillar": {"type": "cylinder", "p0": [-2.4, 6.3, -1.4], "p1": [-2.4, 6.3, 2.2], "radius": 0.35,
                    "bsdf": _diffuse(textures["pillar"])},
     }
+    if not backdrop:
+        del d["wall"]
+    return d
 
 
 def grid_cameras(cfg: LLFFDatasetConfig, rng: np.random.Generator) -> list[np.ndarray]:
-    """Mitsuba ``to_world`` [4, 4] per view: jittered grid in X–Z, looking at (0, 6, 0)."""
+    """Mitsuba ``to_world`` [4, 4] per view: jittered grid in X–Z, looking at (0, 6, 0)
+    raised by ``pitch_deg``."""
     bx, bz = cfg.baseline
     xs = np.linspace(-bx / 2, bx / 2, cfg.cols) if cfg.cols > 1 else np.zeros(1)
     zs = np.linspace(bz / 2, -bz / 2, cfg.rows) if cfg.rows > 1 else np.zeros(1)
@@ -172,7 +209,7 @@ def grid_cameras(cfg: LLFFDatasetConfig, rng: np.random.Generator) -> list[np.nd
     for z in zs:
         for x in xs:
             o = np.array([x, 0.0, z]) + rng.normal(0, cfg.jitter, 3) * [1, 0.5, 1]
-            target = np.array([0.0, 6.0, 0.0]) + rng.normal(0, 1, 3) * 6.0 * np.radians(cfg.jitter_deg)
+            target = np.array([0.0, 6.0, 6.0 * np.tan(np.radians(cfg.pitch_deg))]) + rng.normal(0, 1, 3) * 6.0 * np.radians(cfg.jitter_deg)
             m = np.array(mi.ScalarTransform4f().look_at(origin=o.tolist(), target=target.tolist(),
                                                         up=[0, 0, 1]).matrix, float)
             roll = np.radians(rng.normal(0, cfg.jitter_deg))
@@ -216,8 +253,14 @@ def make_llff_dataset(cfg: LLFFDatasetConfig, progress: bool = False) -> dict:
     for k in cfg.downscales:
         (out / f"images_{k}").mkdir(exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
-    scene = mi.load_dict(scene_dict(procedural_textures(rng)))
-    integrator = mi.load_dict({"type": "path", "max_depth": int(cfg.max_depth), "hide_emitters": False})
+    env, scale = None, 1.0
+    if cfg.envmap is not None:
+        env = load_envmap(cfg.envmap)                     # validated (finite, 2:1, readable)
+        scale = (float(cfg.envmap_scale) if cfg.envmap_scale is not None else
+                 auto_exposure(read_envmap_file(cfg.envmap)[0].astype(np.float64)))
+    scene = mi.load_dict(scene_dict(procedural_textures(rng), env, scale, cfg.backdrop,
+                                    cfg.max_depth, cfg.envmap_rotate_deg))
+    integrator = scene.integrator()
     focal = 0.5 * cfg.width / np.tan(np.radians(cfg.fov_x_deg) / 2)
     rows, names = [], []
     poses = grid_cameras(cfg, rng)
@@ -240,7 +283,9 @@ def make_llff_dataset(cfg: LLFFDatasetConfig, progress: bool = False) -> dict:
         if progress:
             print(f"  view {i + 1}/{len(poses)}: near {near:.3f}, far {far:.3f}", flush=True)
     np.save(out / "poses_bounds.npy", np.asarray(rows, np.float64))
-    meta = {"generator": GENERATOR_VERSION,
+    probe = write_probe(scene, out, cfg) if cfg.probe_height > 0 else None
+    meta = {"envmap": None if cfg.envmap is None else str(Path(cfg.envmap).resolve()),
+            "envmap_scale": scale if cfg.envmap is not None else None, "probe": probe,"generator": GENERATOR_VERSION,
             "config": {**asdict(cfg), "out_dir": str(cfg.out_dir)},
             "images": names, "to_world_mitsuba": [m.tolist() for m in poses],
             "near_far": [[float(r[15]), float(r[16])] for r in rows],
@@ -248,3 +293,23 @@ def make_llff_dataset(cfg: LLFFDatasetConfig, progress: bool = False) -> dict:
             "seconds": time.perf_counter() - t0}
     (out / "meta.json").write_text(json.dumps(meta, indent=1))
     return meta
+
+
+def write_probe(scene, out: Path, cfg: LLFFDatasetConfig) -> dict:
+    """``probes/center.exr``: the light arriving at :data:`PLACEMENT` (``render_probe``,
+    ``cfg.probe_height`` rows, 8² strata per pixel) in the frame ``comgs reconstruct`` gives
+    this folder (the LLFF loader turns the world so the mean camera up is +Z), and
+    ``probes/probes.json`` with the position in that frame: ``estimate-light --at`` it and
+    ``compare-light`` against the file."""
+    from comgs_dr.data.llff import load_llff
+    rot = np.asarray(load_llff(out).world_from_source, np.float64)[:3, :3]   # world -> recon
+    pos = rot @ np.asarray(PLACEMENT, np.float64)
+    img = render_probe(scene, PLACEMENT, int(cfg.probe_height), 8, cfg.seed,
+                       world_from_probe=rot.T)
+    (out / "probes").mkdir(exist_ok=True)
+    path = write_exr(out / "probes" / "center.exr", img, "equirect")
+    info = {"center": {"position": pos.tolist(), "position_world": list(PLACEMENT),
+                       "frame": "the reconstruction's (comgs reconstruct of this folder)",
+                       "height": int(cfg.probe_height), "strata_per_pixel": 64}}
+    (out / "probes" / "probes.json").write_text(json.dumps(info, indent=1))
+    return {"file": str(path), **info["center"]}

@@ -43,12 +43,14 @@ __all__ = ["render_probe", "empty_scene", "placement_position", "placement_probe
 
 
 def render_probe(scene: "mi.Scene", position, height: int = 128, spp_side: int = 8,
-                 seed: int = 0, progress=None) -> np.ndarray:
+                 seed: int = 0, progress=None, world_from_probe=None) -> np.ndarray:
     """[height, 2·height, 3] float32 radiance arriving at ``position`` [3] (world) from every
     equirect direction, with the scene's integrator; ``spp_side``² stratified samples per
     pixel, equal in solid angle (``core.equirect.pixel_directions(equal_area=True)``; one:
     the pixel centre). Rays go in launches of at most 2²¹. ``progress``: optional
-    callable(pixels done, pixels) after each launch."""
+    callable(pixels done, pixels) after each launch. ``world_from_probe`` [3, 3]: a rotation
+    taking the probe's pixel directions into the scene's world (the probe in another frame,
+    e.g. a reconstruction's); None: the world's own."""
     h, k = int(height), int(spp_side)
     if not (1 <= h <= MAX_HEIGHT and k >= 1):
         raise ValueError(f"render_probe: height must be in [1, {MAX_HEIGHT}] and spp_side "
@@ -56,6 +58,11 @@ def render_probe(scene: "mi.Scene", position, height: int = 128, spp_side: int =
     p = np.asarray(position, np.float64).reshape(-1)
     if p.shape != (3,) or not np.isfinite(p).all():
         raise ValueError(f"render_probe: position must be 3 finite numbers, got {position!r}")
+    R = np.eye(3) if world_from_probe is None else np.asarray(world_from_probe, np.float64)
+    if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6) \
+            or np.linalg.det(R) < 0:
+        raise ValueError(f"render_probe: world_from_probe must be a 3×3 rotation, got "
+                         f"{np.asarray(world_from_probe).tolist()!r:.120}")
     integ = scene.integrator()
     if not isinstance(integ, mi.SamplingIntegrator):
         raise ValueError(f"render_probe: the scene's integrator must be a sampling integrator "
@@ -69,7 +76,7 @@ def render_probe(scene: "mi.Scene", position, height: int = 128, spp_side: int =
     for p0 in range(0, n, step):
         p1 = min(n, p0 + step)
         m = (p1 - p0) * k * k
-        d = pixel_directions(w, h, p0, p1, k, rng, equal_area=True).astype(np.float32)
+        d = (pixel_directions(w, h, p0, p1, k, rng, equal_area=True) @ R.T).astype(np.float32)
         origin = mi.Point3f(*[dr.full(mi.Float, float(c), m) for c in p])
         ray = mi.Ray3f(origin, to_jit(mi.Vector3f, d.T))
         sampler.seed(seed * 1_000_003 + p0, m)

@@ -261,8 +261,12 @@ def normal_quaternions(normals) -> np.ndarray:
     return frame_to_quat(np.stack([t, np.cross(n, t), n], -1)).astype(np.float32)
 
 
+FAR_FIELD_DEPTH = 1e4      # × far: the "at infinity" candidate of ``far_field``
+FAR_FIELD_TOL = (1.25, 0.005)   # far field: cost at infinity ≤ a·best finite cost + b
+
+
 def near_far_points(views, near_far, n: int, rng: np.random.Generator, candidates: int = 1,
-                    neighbours: int = 4):
+                    neighbours: int = 4, far_field: bool = False):
     """Random points in the union of the training frusta between each view's near/far
     bounds: the initialisation of forward-facing captures (LLFF) without SfM points.
 
@@ -280,7 +284,17 @@ def near_far_points(views, near_far, n: int, rng: np.random.Generator, candidate
     the better half of the neighbours that see it, so one occluding view does not veto
     the right depth). Where no neighbour sees any candidate the depth stays random.
 
-    Returns (points [n, 3] float32, colours [n, 3] float32, normals [n, 3] float32 unit).
+    ``far_field`` (with ``candidates`` > 1): one more candidate ``FAR_FIELD_DEPTH`` × far away,
+    i.e. at infinity; a pixel whose patch matches there about as well as at its best finite
+    depth (``FAR_FIELD_TOL``) shows no parallax — the sky, or a distant textureless wall — and
+    its point is dropped, left to a learned background (``reconstruct --background env``).
+    Why: every pixel gets a point between near and far, so a forward-facing capture's sky
+    was held by surfels at the far bound, the background learnt nothing (9 % of its texels
+    observed on a ``make-dataset llff --envmap`` capture), and from a placement in the scene
+    those surfels hung overhead as a clipped white ceiling.
+
+    Returns (points [n', 3] float32, colours [n', 3] float32, normals [n', 3] float32 unit),
+    n' = n, or n minus the far-field pixels.
     """
     nf = np.asarray(near_far, np.float64).reshape(-1, 2)
     if len(nf) != len(views):
@@ -290,6 +304,8 @@ def near_far_points(views, near_far, n: int, rng: np.random.Generator, candidate
     if n < 4:
         raise ValueError(f"near_far_points: need n >= 4 points, got {n}")
     k = max(int(candidates), 1)
+    far_field = bool(far_field) and k > 1 and len(views) > 1
+    keep = np.ones(n, bool)
     centers = np.array([np.asarray(v.camera.to_world, np.float64)[:3, 3] for v in views])
     owner = np.arange(n) % len(views)
     pts = np.empty((n, 3))
@@ -313,24 +329,44 @@ def near_far_points(views, near_far, n: int, rng: np.random.Generator, candidate
         o, d = pixel_rays(cam, x, y)                                       # |d_z| = 1 in camera
         if k > 1 and len(views) > 1:
             nb = np.argsort(np.linalg.norm(centers - centers[j], axis=1))[1:1 + int(neighbours)]
-            cand = o + d[:, None, :] * z[..., None]                # [m, k, 3]
+            zc = np.concatenate([z, np.full((m_, 1), FAR_FIELD_DEPTH * far)], 1) if far_field \
+                else z                                                     # [m, k (+1)]
+            cand = o + d[:, None, :] * zc[..., None]               # [m, k (+1), 3]
             others = [views[i] for i in nb]
-            best = np.concatenate([                                        # bounded memory
-                _photo_consistent(v.image, ix[c:c + 2048], iy[c:c + 2048], cand[c:c + 2048],
-                                  others, rng) for c in range(0, m_, 2048)])
+            total, best = [], []
+            for c in range(0, m_, 2048):                                   # bounded memory
+                t_ = _photo_costs(v.image, ix[c:c + 2048], iy[c:c + 2048], cand[c:c + 2048],
+                                  others)                                  # [≤2048, k (+1)]
+                total.append(t_)
+                best.append(_best(t_[:, :k], rng))
+            total, best = np.concatenate(total), np.concatenate(best)
+            if far_field:
+                fin = total[np.arange(m_), best]
+                a, b = FAR_FIELD_TOL
+                keep[idx] = ~(np.isfinite(total[:, k]) & (total[:, k] <= a * fin + b))
             z = z[np.arange(m_), best]
         else:
             z = z[:, 0]
         pts[idx] = o + d * z[:, None]
         nrm[idx] = -d / np.linalg.norm(d, axis=1, keepdims=True)
         cols[idx] = v.image[iy, ix, :3]
-    return pts.astype(np.float32), cols, nrm.astype(np.float32)
+    return pts[keep].astype(np.float32), cols[keep], nrm[keep].astype(np.float32)
 
 
-def _photo_consistent(image, ix, iy, cand, others, rng) -> np.ndarray:
-    """Index [m] of the candidate in ``cand`` [m, k, 3] whose 3x3 patches in ``others``
-    best match the reference patch around pixel (ix, iy) of ``image`` (see near_far_points).
-    Neighbour patches are sampled bilinearly around the candidate's sub-pixel projection."""
+def _best(total, rng) -> np.ndarray:
+    """[m] index of the lowest cost per row of ``total`` [m, k]; random where none is finite
+    (no neighbour sees any candidate)."""
+    best = np.argmin(total, axis=1)
+    none = ~np.isfinite(total).any(1)
+    best[none] = rng.integers(0, total.shape[1], int(none.sum()))
+    return best
+
+
+def _photo_costs(image, ix, iy, cand, others) -> np.ndarray:
+    """[m, k] photo-consistency cost of each candidate in ``cand`` [m, k, 3]: how well its
+    3x3 patches in ``others`` match the reference patch around pixel (ix, iy) of ``image``
+    (see near_far_points; inf where no neighbour sees it). Neighbour patches are sampled
+    bilinearly around the candidate's sub-pixel projection."""
     m_, k = cand.shape[:2]
     off = np.array([(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], np.float64)  # [9, 2]
     h, w = image.shape[:2]
@@ -345,12 +381,8 @@ def _photo_consistent(image, ix, iy, cand, others, rng) -> np.ndarray:
     costs.sort(axis=0)                                                      # best neighbours first
     half = max(1, (len(others) + 1) // 2)
     seen = np.isfinite(costs[:half]).sum(0)                                 # [m, k]
-    total = np.where(seen > 0, np.where(np.isfinite(costs[:half]), costs[:half], 0).sum(0)
-                     / np.maximum(seen, 1), np.inf)
-    best = np.argmin(total, axis=1)
-    none = ~np.isfinite(total).any(1)
-    best[none] = rng.integers(0, k, int(none.sum()))
-    return best
+    return np.where(seen > 0, np.where(np.isfinite(costs[:half]), costs[:half], 0).sum(0)
+                    / np.maximum(seen, 1), np.inf)
 
 
 def _bilinear(image, x, y) -> np.ndarray:
@@ -409,11 +441,18 @@ def initial_surfels(data, cfg, rng) -> tuple[SurfelParams, str]:
         if near_far is None:
             raise ValueError("init='nearfar' needs per-view near/far bounds (LLFF poses_bounds.npy); "
                              "this dataset has none (use random or points)")
+        far = cfg.background == "env"
         pts, cols, normals = near_far_points(data.train, near_far, cfg.init_points, rng,
-                                               candidates=32, neighbours=8)
+                                               candidates=32, neighbours=8, far_field=far)
+        if len(pts) < 4:                 # all sky: keep the sweep's points after all
+            pts, cols, normals = near_far_points(data.train, near_far, cfg.init_points, rng,
+                                                   candidates=32, neighbours=8)
+            far = False
+        dropped = (f", {cfg.init_points - len(pts)} pixels matching as well at infinity left "
+                   f"to the learned background" if far else "")
         desc = (f"near/far frusta ({len(pts)} pixels swept over 32 disparities between the poses' "
                 f"bounds {near_far[:, 0].min():.3g}–{near_far[:, 1].max():.3g}, most photo-consistent "
-                f"depth, pixel colours, camera-facing)")
+                f"depth, pixel colours, camera-facing{dropped})")
         if cfg.preset == "scene" and data.points is None:
             warnings.warn(f"scene preset without dataset points: initialised from the {desc}; "
                           "SfM points (COLMAP, or a points3d.ply) give a better start", stacklevel=3)
