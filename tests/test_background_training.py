@@ -110,7 +110,7 @@ def test_checkpoint_carries_the_background(sky_scene, tmp_path):
     assert moved < 0.5 * learnt, (moved, learnt)                           # from where it was
 
 
-def test_estimate_light_uses_the_background(trained):
+def test_estimate_light_uses_the_background(trained, monkeypatch, caplog):
     run, _ = trained
     pos = [0.0, 0.0, 0.3]
     cfg = dict(width=64, height=32, oct_res=16, light_head="none")
@@ -128,6 +128,14 @@ def test_estimate_light_uses_the_background(trained):
     assert 0.05 < mw["open_sky_fraction"] <= mw["seen_sky_fraction"] + 1e-9
     from comgs_dr.stages.estimate_light_files import _sky_text
     assert f"(open sky {100 * mw['open_sky_fraction']:.1f}%)" in _sky_text(mw)
+    # little open sky in a well-seen upper hemisphere: warned (the threshold moved above it)
+    from comgs_dr.lighting import hdr
+    for limit, warned in ((mw["open_sky_fraction"] + 0.01, True), (0.0, False)):
+        monkeypatch.setattr(hdr, "OPEN_SKY_WARN", limit)
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="comgs_dr.stages.estimate_light"):
+            estimate_light(run / "point_cloud.ply", pos, EstimateConfig(**cfg), FillBackend("mean"))
+        assert ("is open sky" in caplog.text) == warned
     with pytest.raises(FileNotFoundError, match="no such folder"):
         estimate_light(run / "point_cloud.ply", pos,
                        EstimateConfig(background=str(run / "nowhere"), **cfg), FillBackend("mean"))

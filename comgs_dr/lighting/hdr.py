@@ -51,12 +51,16 @@ __all__ = ["expose", "unexpose", "fuse_brackets",
            "DEFAULT_EVS", "saturation_limit",
            "label_equirect", "area_resize_equirect", "extract_lights", "real_sh_basis", "mean_fill",
            "push_pull_fill", "sh_fill", "check_ldr_mask", "SAT", "seen_sky_fraction",
+           "OPEN_SKY_WARN",
            "clipped_sky_fraction", "SEEN_SKY_WARN", "CLIPPED_SKY_WARN"]
 
 DEFAULT_EVS = (0.0, -2.5, -5.0)
 SAT = 0.98                 # EV-0 max channel at/above which a pixel counts as clipped
 CLIPPED_SKY_WARN = 0.3     # clipped_sky_fraction above it: the light inside is not readable
 SEEN_SKY_WARN = 0.25       # seen_sky_fraction below it: the lights above are the completion's guess
+OPEN_SKY_WARN = 0.1        # open sky (a learned background) below it, the upper hemisphere seen:
+                           # it is surfels (forward-facing captures 0.02-0.03, views that look
+                           # around 0.65-0.67 of it; README "A forward-facing capture")
 
 
 # ---------------------------------------------------------------------------------------
