@@ -70,6 +70,10 @@ def build_run(map_path: Path, out: Path, a) -> tuple[Path, np.ndarray, float]:
     return run, m[:3, 3], scale
 
 
+def _frac(x) -> str:
+    return "n/a" if x is None else f"{x:.2f}"
+
+
 def true_light(map_path: Path, out: Path, scale: float, kind: str) -> np.ndarray:
     """The reference: the light path-traced at the placement in the dataset's scene without
     the object (``data.placement_probe``, 256 rows, 64 strata per pixel; cached in ``out``),
@@ -179,7 +183,7 @@ def main(argv=None):
                     print(f"<!-- {p.stem}: label auto -> {r['meta']['label']} "
                           f"(p(outdoor) {r['meta']['p_outdoor']:.2f}) -->", flush=True)
                 print(f"<!-- {p.stem}: upper hemisphere seen {r['meta']['seen_sky_fraction']:.2f} "
-                      f"(open sky {r['meta']['open_sky_fraction'] or 0.0:.2f}), of it "
+                      f"(open sky {_frac(r['meta']['open_sky_fraction'])}), of it "
                       f"clipped {r['meta']['clipped_sky_fraction']:.2f} -->", flush=True)
                 rec = bgenv.load_clipped(run)
                 clip = None if rec is None else bgenv.splat_record(rec, *r["hdr"].shape[:2])

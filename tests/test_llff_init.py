@@ -220,11 +220,19 @@ def test_make_dataset_llff_with_a_map_and_the_true_light(tmp_path, capsys):
     expect = rot @ (np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ d[i, j])   # the pixel's centre
     got = hdr.extract_lights(probe, k=1)[0]["direction"]
     assert np.degrees(np.arccos(np.clip(got @ expect, -1, 1))) < 6.0          # a pixel: 5.6°
-    np.testing.assert_allclose(rot @ np.array(meta["probe"]["position_world"]), pos, atol=1e-9)
+    from comgs_dr.data.llff_synthetic import PLACEMENT
+    assert meta["probe"]["position_world"] == list(PLACEMENT)
+    # the position is where the floor is in the reconstruction's frame: 0.3 above it
+    floor = rot @ np.array([0.0, 0.0, 1.0])                   # the world's up, turned
+    assert abs(float(floor @ pos) - float(floor @ (rot @ np.array([0.2, 3.8, -1.4]))) - 0.3) < 1e-9
     img = np.asarray(load_dataset(out).train[0].image, np.float64)
     assert img[0].mean() > 0.2                          # the top row sees the map's sky
-    assert main(base + ["--envmap-scale", "2"]) == 2   # needs --envmap
-    assert "--envmap-scale needs --envmap" in capsys.readouterr().err
+    for flags in (["--envmap-scale", "2"], ["--envmap-rotate", "30"], ["--probe-height", "8"]):
+        assert main(base + flags) == 2                 # each needs --envmap
+        assert f"{flags[0]} needs --envmap" in capsys.readouterr().err
+    assert main(["make-dataset", "llff", "--out", str(tmp_path / "none"), "--envmap",
+                 str(tmp_path / "missing.exr"), "--quiet"]) == 2
+    assert not (tmp_path / "none").exists()            # checked before any folder is made
 
 
 def test_far_field_pixels_are_left_to_the_background(tmp_path):

@@ -309,6 +309,13 @@ def test_finished_room_is_repainted_and_lit_by_strips():
         d, _, _ = _room_dict(np.random.default_rng(seed), finished=True)
         assert not any(k.startswith(("strip", "uplight")) for k in plain)
         assert plain.keys() <= d.keys()
+        for k in plain:                 # same random stream: geometry and lights unchanged
+            if k.startswith(("obj", "lamp", "window")):
+                a, b = plain[k], d[k]
+                assert a.get("center") == b.get("center") and a.get("radius") == b.get("radius")
+                if "to_world" in a:
+                    np.testing.assert_array_equal(np.array(a["to_world"].matrix),
+                                                  np.array(b["to_world"].matrix))
         top = d["ceiling"]["to_world"].matrix[2, 3]
         ceil = np.array(d["ceiling"]["bsdf"]["bsdf"]["reflectance"]["value"])
         assert ceil.min() >= 0.7 * 0.94 - 1e-9 and ceil.max() - ceil.min() <= 0.06 * ceil.max() + 1e-9

@@ -390,8 +390,11 @@ def test_llff_cameras_project(tmp_path, rng, scale):
     assert np.all(ups[:, 2] > 0.97)
     if scale == 1:              # render-comp --cameras poses_bounds.npy: the same test views
         from comgs_dr.data.comp_folder import camera_source
-        cs = camera_source(tmp_path / "poses_bounds.npy", np.diag([2.0, 2, 2, 1]), res=(20, 10))
+        W = np.asarray(auto.world_from_source, np.float64)
+        cs = camera_source(tmp_path / "poses_bounds.npy", W, res=(20, 10))
         assert [c["name"] for c in cs] == ["IMG_000", "IMG_008"]
+        with pytest.raises(ValueError, match="not the composition's"):     # another frame
+            camera_source(tmp_path, W @ np.diag([1.0, -1, -1, 1]), res=(20, 10))
         for c, v in zip(cs, auto.test):         # the loader's frame; world_from_source unused
             np.testing.assert_array_equal(c["to_world"], v.camera.to_world)
             assert (c["width"], c["height"]) == (20, 10) and c["fov_x_deg"] == v.camera.fov_x_deg

@@ -206,8 +206,11 @@ def _make_llff(args) -> int:
             raise ValueError(f"make-dataset llff: {flag} must be >= {lo}, got {v}")
     if args.rows * args.cols < 2:
         raise ValueError("make-dataset llff: need at least 2 views (--rows x --cols)")
-    if args.envmap is None and (args.envmap_scale is not None):
-        raise ValueError("make-dataset llff: --envmap-scale needs --envmap")
+    for flag, given in (("--envmap-scale", args.envmap_scale is not None),
+                        ("--envmap-rotate", args.envmap_rotate != 0.0),
+                        ("--probe-height", args.probe_height > 0)):
+        if given and args.envmap is None:   # the default sun is a delta light no ray hits
+            raise ValueError(f"make-dataset llff: {flag} needs --envmap")
     if args.envmap_scale is not None and not 0 < args.envmap_scale < float("inf"):
         raise ValueError(f"make-dataset llff: --envmap-scale must be > 0, got {args.envmap_scale}")
     if not -60.0 <= args.pitch <= 60.0 or not 0 <= args.probe_height <= 1024:

@@ -204,25 +204,47 @@ def read_cameras(path, world_from_source=None, res=None) -> list[dict]:
     return out
 
 
-def dataset_cameras(path, res=None) -> list[dict]:
+def dataset_cameras(path, res=None, world_from_source=None) -> list[dict]:
     """Cameras of a captured dataset, as :func:`read_cameras` gives them: the test views of a
     folder the loaders read (NeRF-synthetic, COLMAP, LLFF; or its ``poses_bounds.npy`` /
     transforms file), every view when it holds no test split. They are loaded as step 1
     loads them, so they are already in the reconstruction's frame (no
     ``world_from_source``). Image size: ``res`` (int or (w, h)), else the dataset's. A
-    principal point off the centre is not modelled (as in step 1's rendering)."""
+    principal point off the centre is not modelled (as in step 1's rendering).
+    ``world_from_source`` (the composition's): ValueError when the dataset's differs, i.e.
+    the folder is not the one the scene was reconstructed from. Frame names are the views'
+    file names without extension (as :func:`read_cameras` names a transforms file's frames),
+    or, when two coincide (``cam0/0001.jpg``, ``cam1/0001.jpg``), their paths with "/" as "_".
+    The loader reads the images too."""
     from comgs_dr.data.load import load_dataset
     data = load_dataset(path)
+    if world_from_source is not None and not np.allclose(
+            np.asarray(data.world_from_source, np.float64),
+            np.asarray(world_from_source, np.float64), atol=1e-6):
+        raise ValueError(f"{path}: this dataset's frame (its world_from_source) is not the "
+                         f"composition's: it is not the dataset the scene was reconstructed "
+                         f"from; give that one, or a transforms.json in its frame")
     views = data.test or data.train
     if res is not None:
         w, h = (res, res) if isinstance(res, int) else res
     out = []
     for v in views:
         c = v.camera
-        out.append({"name": Path(v.name).stem, "to_world": np.asarray(c.to_world, np.float64),
+        out.append({"name": str(v.name), "to_world": np.asarray(c.to_world, np.float64),
                     "fov_x_deg": float(c.fov_x_deg),
                     "width": c.width if res is None else w,
                     "height": c.height if res is None else h})
+    strip = lambda n: str(Path(n).with_suffix("")) if Path(n).suffix.lower() in (  # noqa: E731
+        ".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".exr") else n
+    base = [Path(strip(c["name"])).name for c in out]
+    full = [strip(c["name"]).replace("\\", "/").replace("/", "_") for c in out]
+    names = base if len(set(base)) == len(base) else full
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise ValueError(f"{path}: views share a name ({dup[:3]}): frames would overwrite "
+                         f"each other")
+    for c, n in zip(out, names):
+        c["name"] = n
     return out
 
 
@@ -235,7 +257,7 @@ def camera_source(path, world_from_source=None, res=None) -> list[dict]:
         return read_cameras(p, world_from_source, res)
     if not p.exists():
         raise FileNotFoundError(f"camera file or dataset folder not found: {p}")
-    return dataset_cameras(p, res)
+    return dataset_cameras(p, res, world_from_source)
 
 
 def sensor_dict(cam: dict, pixel_format: str = "rgb", clip: dict | None = None) -> dict:

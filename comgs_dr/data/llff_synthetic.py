@@ -53,7 +53,7 @@ from comgs_dr.data.types import MITSUBA_FROM_LLFF, Camera
 from comgs_dr.lighting.envmap import load_envmap, read_envmap_file, write_exr
 from comgs_dr.lighting.pano_data import auto_exposure
 
-GENERATOR_VERSION = "comgs_dr.data.llff_synthetic/1"
+GENERATOR_VERSION = "comgs_dr.data.llff_synthetic/2"     # 2: envmap, probe
 
 
 @dataclass
@@ -248,16 +248,19 @@ def make_llff_dataset(cfg: LLFFDatasetConfig, progress: bool = False) -> dict:
     """
     activate_variant(cfg.variant)
     t0 = time.perf_counter()
+    env, scale = None, 1.0
+    if cfg.envmap is not None:                            # checked before any folder is made
+        env = load_envmap(cfg.envmap)                     # validated (finite, 2:1, readable)
+        scale = (float(cfg.envmap_scale) if cfg.envmap_scale is not None else
+                 auto_exposure(read_envmap_file(cfg.envmap)[0].astype(np.float64)))
+    elif cfg.probe_height > 0:
+        raise ValueError("make_llff_dataset: probe_height needs an envmap (the default sun is a "
+                         "directional light, which the probe's rays cannot hit)")
     out = Path(cfg.out_dir)
     (out / "images").mkdir(parents=True, exist_ok=True)
     for k in cfg.downscales:
         (out / f"images_{k}").mkdir(exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
-    env, scale = None, 1.0
-    if cfg.envmap is not None:
-        env = load_envmap(cfg.envmap)                     # validated (finite, 2:1, readable)
-        scale = (float(cfg.envmap_scale) if cfg.envmap_scale is not None else
-                 auto_exposure(read_envmap_file(cfg.envmap)[0].astype(np.float64)))
     scene = mi.load_dict(scene_dict(procedural_textures(rng), env, scale, cfg.backdrop,
                                     cfg.max_depth, cfg.envmap_rotate_deg))
     integrator = scene.integrator()

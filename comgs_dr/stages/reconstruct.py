@@ -100,6 +100,8 @@ class RadianceConfig:
     # (sunrise: error 0.039 → 0.024) but under-fitted detailed ones (kiara 0.101 → 0.149)
     lr_env_final: float | None = None
     lambda_binary: float = 0.05           # coverage entropy, with the env background only
+    init_far_field: bool = True           # env background + near/far init: pixels as
+                                          # consistent at infinity are left to the background
     lambda_env_tv: float = 0.01           # total variation of the env background
     d2n_from: int = 300
     lr_means: float = 1.6e-4              # × scene extent, decays to lr_means_final

@@ -53,6 +53,11 @@ class TrainSceneLabelConfig:
     margin: float = 0.2
     seed: int = 0
 
+    def __post_init__(self):
+        if not 0.0 <= float(self.finished_rooms) <= 1.0 or int(self.room_spp) < 1:
+            raise ValueError(f"TrainSceneLabelConfig: finished_rooms must lie in [0, 1] and "
+                             f"room_spp be >= 1, got {self.finished_rooms}, {self.room_spp}")
+
 
 def _draw(rng, hdr, masks, cfg) -> np.ndarray:
     """Features of one augmented, exposed, masked draw of an HDR panorama [h, w, 3]."""
