@@ -313,7 +313,7 @@ def _nerf_folder(root, n=4, res=24):
     return root
 
 
-def test_compose_cache_recomputes_only_what_a_moved_object_touches(tmp_path):
+def test_compose_cache_recomputes_only_what_a_moved_object_touches(tmp_path, caplog):
     from comgs_dr.stages.compose import ComposeConfig, compose
     from comgs_dr.train.run import write_run_info
     data = _nerf_folder(tmp_path / "data")
@@ -364,8 +364,12 @@ def test_compose_cache_recomputes_only_what_a_moved_object_touches(tmp_path):
     assert (out / "renders" / "sop" / "r_3.png").is_file()
     assert json.loads((out / "metrics_sop.json").read_text())["ssim"] == m["ssim"]
     # the dataset folder itself: its test views, loaded as step 1 loads them (same frames)
-    m2 = render_comp(out, tmp_path / "data", "sop", rays=16, progress=False)
-    assert m2["frames"] == 4 and m2["resolution"] == [24, 24]
+    (out / "renders" / "sop" / "old_frame.png").write_bytes(b"")     # an earlier run's frame
+    with caplog.at_level("WARNING", logger="comgs_dr.stages.render_comp"):
+        m2 = render_comp(out, tmp_path / "data", "sop", rays=16, progress=False)
+    assert "1 frame(s) not of these cameras (e.g. old_frame.png)" in caplog.text
+    assert "metrics_sop.json is from an earlier run" in caplog.text
+    assert m2["frames"] == 4 and m2["resolution"] == [24, 24] and m2["cameras"] == str(tmp_path / "data")
     assert (out / "renders" / "sop" / "r_3.png").is_file()
     # the same cameras, to rounding (2e-16; the renders are not compared pixel for pixel:
     # in some runs 7 % of one frame's pixels differed by up to 68/255 between the two)

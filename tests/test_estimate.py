@@ -347,6 +347,9 @@ def test_cli_on_ply(params, tiny_weights, tmp_path, capsys):
     hot = [l["above_white"] for l in doc["lights"]]          # lights, or bright surfaces
     assert hot and all(h == (l["peak_luminance"] > 1.0) for h, l in zip(hot, doc["lights"]))
     assert f"{len(hot)} brightest region(s), {sum(hot)} of them above the EV-0 white" in text
+    m = doc["meta"]                   # no learned background: no open-sky share printed
+    assert (f"upper hemisphere seen {100 * m['seen_sky_fraction']:.1f}%, of it clipped "
+            f"{100 * m['clipped_sky_fraction']:.1f}%") in text and "open sky" not in text
     lines = [l for l in text.splitlines() if l.startswith("clipped region ")]
     assert len(lines) == len(doc["light_head_regions"]) >= 1        # the white window
     assert all(l.endswith(("(added)", "(reduced)", "(unchanged)")) for l in lines)

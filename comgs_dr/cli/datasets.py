@@ -213,9 +213,12 @@ def _make_llff(args) -> int:
             raise ValueError(f"make-dataset llff: {flag} needs --envmap")
     if args.envmap_scale is not None and not 0 < args.envmap_scale < float("inf"):
         raise ValueError(f"make-dataset llff: --envmap-scale must be > 0, got {args.envmap_scale}")
-    if not -60.0 <= args.pitch <= 60.0 or not 0 <= args.probe_height <= 1024:
-        raise ValueError(f"make-dataset llff: --pitch must lie in [-60, 60] degrees and "
-                         f"--probe-height in [0, 1024], got {args.pitch}, {args.probe_height}")
+    if not -60.0 <= args.pitch <= 60.0:
+        raise ValueError(f"make-dataset llff: --pitch must lie in [-60, 60] degrees, got "
+                         f"{args.pitch}")
+    if not 0 <= args.probe_height <= 1024:
+        raise ValueError(f"make-dataset llff: --probe-height must lie in [0, 1024], got "
+                         f"{args.probe_height}")
     if any(k < 1 or args.width % k or args.height % k for k in args.downscale):
         raise ValueError(f"make-dataset llff: each --downscale must be >= 1 and divide "
                          f"{args.width}x{args.height}, got {args.downscale}")
@@ -232,9 +235,12 @@ def _make_llff(args) -> int:
           f"poses_bounds.npy, no points, to {args.out} in {m['seconds']:.1f} s")
     if m["probe"] is not None:
         x, y, z = m["probe"]["position"]
+        wx, wy, wz = m["probe"]["position_world"]
         print(f"true light at the placement: {m['probe']['file']}; estimate it with "
               f"`comgs estimate-light RUN/point_cloud.ply --at {x:.3f} {y:.3f} {z:.3f} ...` "
-              f"and score with `comgs compare-light EST.exr {m['probe']['file']}`")
+              f"(the reconstruction's frame) and score with `comgs compare-light EST.exr "
+              f"{m['probe']['file']}`; a `compose` placement there is {wx:g} {wy:g} {wz:g} "
+              f"(placements are in the dataset's frame)")
     return 0
 
 

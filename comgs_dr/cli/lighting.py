@@ -100,6 +100,11 @@ def _cmd_estimate_light(args) -> int:
     print(f"coverage {100 * r['coverage']:.1f}%, backend {r['meta']['backend']}, "
           f"{len(r['lights'])} brightest region(s), {hot} of them above the EV-0 white level "
           f"(lights), peak radiance {float(r['hdr'].max()):.3g}")
+    m = r["meta"]
+    sky = "" if m.get("open_sky_fraction") is None else \
+        f" (open sky {100 * m['open_sky_fraction']:.1f}%)"
+    print(f"upper hemisphere seen {100 * m['seen_sky_fraction']:.1f}%{sky}, of it clipped "
+          f"{100 * m['clipped_sky_fraction']:.1f}%")
     if r["meta"].get("p_outdoor") is not None:
         print(f"label auto -> {r['meta']['label']} (p(outdoor) {r['meta']['p_outdoor']:.2f})")
     for i, g in enumerate(r.get("light_regions", [])):     # what the light head did

@@ -235,10 +235,10 @@ def z_depths(scene, cam: Camera) -> np.ndarray:
     d = np.asarray(d, np.float64).reshape(-1, 3)
     o = np.asarray(o, np.float64).reshape(-1, 3)
     si = scene.ray_intersect(mi.Ray3f(to_jit(mi.Point3f, o.T), to_jit(mi.Vector3f, d.T)))
-    t = np.where(np.asarray(si.is_valid()), np.asarray(si.t, np.float64), np.inf)
-    p = o + d * t[:, None]
-    z = (p - cam.center) @ cam.to_world[:3, 2]
-    return np.where(np.isfinite(t), z, np.inf).reshape(cam.height, cam.width)
+    hit = np.asarray(si.is_valid())
+    t = np.where(hit, np.asarray(si.t, np.float64), 0.0)
+    z = (o + d * t[:, None] - cam.center) @ cam.to_world[:3, 2]
+    return np.where(hit, z, np.inf).reshape(cam.height, cam.width)
 
 
 def make_llff_dataset(cfg: LLFFDatasetConfig, progress: bool = False) -> dict:

@@ -283,10 +283,10 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
         log.warning("estimate_light: of the upper hemisphere, %.1f%% is seen at the placement "
                     "but only %.1f%% is open sky (step 1's learned background; warned below "
                     "%.0f%%): the rest is surfels. If the scene is outdoors, the placement looks "
-                    "up through surfels the cameras saw against the sky (a forward-facing "
-                    "capture: 1.8-2.9%% open sky, the sky read as clipped lights overhead, "
-                    "E(sun)/E(up) 37-84%% low); give the map (compose --env) or capture views "
-                    "that look around", 100 * sky_seen, 100 * open_sky,
+                    "up through surfels the cameras saw against the sky (measured on "
+                    "forward-facing captures with 1.8-2.9%% open sky: the light 38-141 deg "
+                    "off, E(sun)/E(up) 37-84%% low); give the map (compose --env) or capture "
+                    "views that look around", 100 * sky_seen, 100 * open_sky,
                     100 * hdr.OPEN_SKY_WARN)
     elif sky_clip > hdr.CLIPPED_SKY_WARN:
         log.warning("estimate_light: %.1f%% of the observed sky is clipped at EV 0 (warned "

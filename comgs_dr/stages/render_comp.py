@@ -12,6 +12,7 @@ kernel compilation; ``first_frame_seconds`` apart) and a per-frame list.
 from __future__ import annotations
 
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -28,6 +29,7 @@ from comgs_dr.eval.metrics import psnr, ssim
 from comgs_dr.train.checkpoint import atomic_write_text
 
 VARIANTS = ("sop", "trace", "noshadow", "paste")
+log = logging.getLogger(__name__)
 
 
 def load_comp_scene(comp_dir, variant: str = "sop", materials: dict | None = None,
@@ -79,6 +81,15 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
     params = mi.traverse(sensor)
     out_dir = comp_dir / "renders" / variant
     out_dir.mkdir(parents=True, exist_ok=True)
+    names = {f"{c['name']}.png" for c in cams}
+    stale = sorted(p.name for p in out_dir.glob("*.png") if p.name not in names)
+    if stale:
+        log.warning("render-comp: %s holds %d frame(s) not of these cameras (e.g. %s), from an "
+                    "earlier run: they are left there", out_dir, len(stale), stale[0])
+    if not gt_dir and (comp_dir / f"metrics_{variant}.json").is_file():
+        log.warning("render-comp: %s is from an earlier run with ground truth (its 'cameras' "
+                    "says which); without --gt-dir it is not rewritten",
+                    comp_dir / f"metrics_{variant}.json")
     frames = []
     size = (cams[0]["width"], cams[0]["height"])
     stage, jsonl = f"render-comp {variant}", f"render_{variant}.{runlog.LOG_NAME}"
@@ -108,7 +119,8 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
                                               frame=i, **{k: v for k, v in rec.items()
                                                           if k in ("psnr", "ssim")}), name=jsonl)
     times = [f["seconds"] for f in frames]
-    summary = {"variant": variant, "frames": len(frames), "resolution": list(size),
+    summary = {"variant": variant, "cameras": str(cameras), "frames": len(frames),
+               "resolution": list(size),
                "frame_seconds": float(np.median(times[1:] if len(times) > 1 else times)),
                "first_frame_seconds": times[0], "renders": str(out_dir), "per_frame": frames}
     if gts:
