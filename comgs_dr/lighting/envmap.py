@@ -292,7 +292,8 @@ def _read_checked(p: Path) -> tuple[np.ndarray, dict]:
                                                       mi.Struct.Type.Float64):
             # a PNG / JPEG holds display values (sRGB, 0–255), not radiance: read as
             # radiance it would light a scene ~250× too bright and without its lights
-            raise ValueError(f"environment map {p} is an integer ({fmt}) image: it holds "
+            raise ValueError(f"environment map {p} is an integer "
+                             f"({getattr(fmt, 'name', str(fmt))}) image: it holds "
                              f"display values, not radiance. Give a linear HDR map (.exr or "
                              f".hdr); a photo's clipped lights cannot be recovered from it")
     if arr.ndim != 3 or arr.shape[2] not in (3, 4) or min(arr.shape[:2]) < 2:
