@@ -38,12 +38,12 @@ def output_paths(out_path) -> dict:
     'metrics': X.metrics.jsonl}."""
     p = Path(out_path)
     if p.suffix.lower() != ".exr":
-        raise ValueError(f"write_outputs: the output must be an .exr file, got {p}")
+        raise ValueError(f"estimate-light --out: the output must be an .exr file, got {p}")
     for d in p.parents:
         if d.exists() and not d.is_dir():
-            raise ValueError(f"write_outputs: cannot write {p}: {d} is a file, not a folder")
+            raise ValueError(f"estimate-light --out: cannot write {p}: {d} is a file, not a folder")
     if p.is_dir():
-        raise ValueError(f"write_outputs: {p} is a folder; give the .exr file to write")
+        raise ValueError(f"estimate-light --out: {p} is a folder; give the .exr file to write")
     stem = p.with_suffix("")
     return {"equirect": p, "oct": Path(f"{stem}_oct.exr"), "json": Path(f"{stem}.json"),
             "preview": Path(f"{stem}_preview.png"), "metrics": Path(f"{stem}.{runlog.LOG_NAME}")}
