@@ -185,6 +185,8 @@ def test_make_dataset_llff_cli(tmp_path, capsys):
     assert not (out / "points3d.ply").exists()
     assert main(args[:-1] + ["--downscale", "5"]) == 2               # 5 does not divide 32x24
     assert "--downscale" in capsys.readouterr().err
+    assert main(args[:-1] + ["--downscale", "4"]) == 2               # 8x6 images: too small
+    assert "makes 8x6 images (under 8 px)" in capsys.readouterr().err
 
 
 def test_make_dataset_llff_with_a_map_and_the_true_light(tmp_path, capsys):

@@ -222,6 +222,11 @@ def _make_llff(args) -> int:
     if any(k < 1 or args.width % k or args.height % k for k in args.downscale):
         raise ValueError(f"make-dataset llff: each --downscale must be >= 1 and divide "
                          f"{args.width}x{args.height}, got {args.downscale}")
+    small = [k for k in args.downscale if min(args.width, args.height) // k < 8]
+    if small:
+        raise ValueError(f"make-dataset llff: --downscale {small[0]} makes "
+                         f"{args.width // small[0]}x{args.height // small[0]} images (under 8 "
+                         f"px); give a smaller --downscale (the default is 8)")
     cfg = LLFFDatasetConfig(out_dir=args.out, rows=args.rows, cols=args.cols, width=args.width,
                             height=args.height, downscales=tuple(args.downscale), spp=args.spp,
                             seed=args.seed, variant=set_variant(args.variant),
