@@ -110,7 +110,7 @@ def test_checkpoint_carries_the_background(sky_scene, tmp_path):
     assert moved < 0.5 * learnt, (moved, learnt)                           # from where it was
 
 
-def test_estimate_light_uses_the_background(trained, monkeypatch, caplog):
+def test_estimate_light_uses_the_background(trained, monkeypatch, caplog, tmp_path):
     run, _ = trained
     pos = [0.0, 0.0, 0.3]
     cfg = dict(width=64, height=32, oct_res=16, light_head="none")
@@ -136,6 +136,21 @@ def test_estimate_light_uses_the_background(trained, monkeypatch, caplog):
         with caplog.at_level("WARNING", logger="comgs_dr.stages.estimate_light"):
             estimate_light(run / "point_cloud.ply", pos, EstimateConfig(**cfg), FillBackend("mean"))
         assert ("is open sky" in caplog.text) == warned
+    # another run's background, given by hand: used, and said to be another scene's sky
+    import shutil
+
+    from comgs_dr.train.run import write_run_info
+    mine, other = tmp_path / "mine", tmp_path / "other"
+    for d, capture in ((mine, "capture"), (other, "another_capture")):
+        shutil.copytree(run, d)
+        write_run_info(d, tmp_path / capture, "scene", 1, False)
+    monkeypatch.setattr(hdr, "OPEN_SKY_WARN", 0.0)
+    for bg, warned in ((str(other), True), (str(mine), False)):
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="comgs_dr.stages.estimate_light"):
+            estimate_light(mine / "point_cloud.ply", pos, EstimateConfig(background=bg, **cfg),
+                           FillBackend("mean"))
+        assert ("its sky is another scene's" in caplog.text) == warned, bg
     with pytest.raises(FileNotFoundError, match="no such folder"):
         estimate_light(run / "point_cloud.ply", pos,
                        EstimateConfig(background=str(run / "nowhere"), **cfg), FillBackend("mean"))

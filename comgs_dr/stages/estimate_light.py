@@ -58,6 +58,7 @@ from comgs_dr.surfels import load_ply, panorama
 from comgs_dr.surfels.panorama import PanoramaConfig
 from comgs_dr.surfels.shape import SurfelShapeBase
 from comgs_dr.train import background as bgenv
+from comgs_dr.train.run import read_run_info
 
 log = logging.getLogger(__name__)
 
@@ -381,7 +382,20 @@ def _background_dir(spec: str, source) -> Path | None:
     d = d if d.is_dir() else d.parent
     if not (d / bgenv.FILE).is_file():
         raise FileNotFoundError(f"estimate_light: background {spec!r}: no {bgenv.FILE} in {d}")
+    mine = _run_data(Path(source).parent) if isinstance(source, (str, Path)) else None
+    theirs = _run_data(d)
+    if mine is not None and theirs is not None and mine != theirs:
+        log.warning("estimate_light: the background comes from %s, whose capture (%s) is not "
+                    "the scene's (%s): its sky is another scene's", d, theirs, mine)
     return d
+
+
+def _run_data(run_dir: Path) -> str | None:
+    """The dataset a step-1 run folder was trained on (its ``run.json``), or None."""
+    try:
+        return str(Path(read_run_info(run_dir)["data"]).resolve())
+    except (OSError, ValueError, KeyError):
+        return None
 
 
 def add_background(trace: dict, run_dir, clipped_max_texels: float = np.inf) -> dict:
