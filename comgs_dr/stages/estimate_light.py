@@ -285,7 +285,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
                     "but only %.1f%% is open sky (step 1's learned background; warned below "
                     "%.0f%%): the rest is surfels. If the scene is outdoors, the placement looks "
                     "up through surfels the cameras saw against the sky (measured on "
-                    "forward-facing captures with 1.8-2.9%% open sky: the light 38-141 deg "
+                    "forward-facing captures with 2-3%% open sky: the light 35-141 deg "
                     "off, E(sun)/E(up) 37-84%% low); give the map (compose --env) or capture "
                     "views that look around", 100 * sky_seen, 100 * open_sky,
                     100 * hdr.OPEN_SKY_WARN)
