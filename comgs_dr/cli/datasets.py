@@ -100,7 +100,8 @@ def _add_make_dataset(sub) -> None:
     ll.add_argument("--no-backdrop", action="store_true", help="no backdrop wall: the views "
                     "see the map's horizon and sky")
     ll.add_argument("--pitch", type=float, default=0.0, metavar="DEG", help="tilt the cameras "
-                    "up by DEG (more sky in view)")
+                    "up by DEG (more sky in view); the LLFF loader takes the mean camera up as "
+                    "+Z, so the reconstruction's frame tilts by about as much (9.7 deg for 10)")
     ll.add_argument("--probe-height", type=int, default=0, metavar="H", help="write "
                     "probes/center.exr (H rows), the true light at the placement, and "
                     "probes/probes.json (its position in the reconstruction's frame)")
