@@ -88,9 +88,8 @@ def main(argv=None) -> list[dict]:
     import comgs_dr
     comgs_dr.set_variant("llvm_ad_rgb")
     from comgs_dr.data.synthetic import shared_data_dir
-    from comgs_dr.eval.lighting_metrics import compare_maps
+    from comgs_dr.eval.lighting_metrics import at_coarser, compare_maps
     from comgs_dr.lighting.envmap import read_envmap_file
-    from comgs_dr.lighting.hdr import area_resize_equirect
     from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light
     logging.getLogger("comgs_dr").setLevel(logging.ERROR)      # the table says it all
     folder = Path(a.maps_dir) if a.maps_dir else shared_data_dir() / "hdri"
@@ -112,12 +111,7 @@ def main(argv=None) -> list[dict]:
             r = estimate_light(str(out / f"run_far_{'on' if far else 'off'}" / "point_cloud.ply"),
                                pos, EstimateConfig(width=2 * a.trace_res, height=a.trace_res,
                                                    oct_res=64, exclude_radius=0.05))
-            est, gt = r["hdr"], truth
-            if est.shape[0] > gt.shape[0]:
-                est = area_resize_equirect(est, *gt.shape[:2])
-            elif est.shape[0] < gt.shape[0]:
-                gt = area_resize_equirect(gt, *est.shape[:2])
-            m = compare_maps(est, gt)
+            m = compare_maps(*at_coarser(r["hdr"], truth))
             re_, rg = m.get("light_up_irradiance_ratio_est"), m.get("light_up_irradiance_ratio_gt")
             err = None if re_ is None or rg is None else re_ / rg - 1.0
             row = {"map": f"{p.stem}:{turn:g}", "far_field": far, "psnr_test": psnr,

@@ -126,8 +126,8 @@ def test_estimate_light_uses_the_background(trained, monkeypatch, caplog, tmp_pa
     mw = with_bg["meta"]
     assert without["meta"]["open_sky_fraction"] is None
     assert 0.05 < mw["open_sky_fraction"] <= mw["seen_sky_fraction"] + 1e-9
-    from comgs_dr.stages.estimate_light_files import _sky_text
-    assert f"(open sky {100 * mw['open_sky_fraction']:.1f}%)" in _sky_text(mw)
+    from comgs_dr.stages.estimate_light_files import sky_text
+    assert f"(open sky {100 * mw['open_sky_fraction']:.1f}%)" in sky_text(mw)
     # little open sky in a well-seen upper hemisphere: warned (the threshold moved above it)
     from comgs_dr.lighting import hdr
     for limit, warned in ((mw["open_sky_fraction"] + 0.01, True), (0.0, False)):

@@ -10,9 +10,8 @@ import numpy as np
 from comgs_dr import set_variant
 from comgs_dr.core import runlog
 from comgs_dr.core.config import add_config_arguments, config_overrides
-from comgs_dr.eval.lighting_metrics import compare_maps
+from comgs_dr.eval.lighting_metrics import at_coarser, compare_maps
 from comgs_dr.lighting import backends, envmap, lights
-from comgs_dr.lighting.hdr import area_resize_equirect
 from comgs_dr.stages import train_completion, train_light_head, train_scene_label
 from comgs_dr.stages.estimate_light import (
     EstimateConfig,
@@ -20,6 +19,7 @@ from comgs_dr.stages.estimate_light import (
     output_paths,
     write_outputs,
 )
+from comgs_dr.stages.estimate_light_files import sky_text
 
 # ----------------------------------------------------------------------------- estimate-light
 
@@ -100,11 +100,7 @@ def _cmd_estimate_light(args) -> int:
     print(f"coverage {100 * r['coverage']:.1f}%, backend {r['meta']['backend']}, "
           f"{len(r['lights'])} brightest region(s), {hot} of them above the EV-0 white level "
           f"(lights), peak radiance {float(r['hdr'].max()):.3g}")
-    m = r["meta"]
-    sky = "" if m.get("open_sky_fraction") is None else \
-        f" (open sky {100 * m['open_sky_fraction']:.1f}%)"
-    print(f"upper hemisphere seen {100 * m['seen_sky_fraction']:.1f}%{sky}, of it clipped "
-          f"{100 * m['clipped_sky_fraction']:.1f}%")
+    print(sky_text(r["meta"]))
     if r["meta"].get("p_outdoor") is not None:
         print(f"label auto -> {r['meta']['label']} (p(outdoor) {r['meta']['p_outdoor']:.2f})")
     for i, g in enumerate(r.get("light_regions", [])):     # what the light head did
@@ -157,11 +153,7 @@ def _el_az(d) -> str:
 
 
 def _cmd_compare_light(args) -> int:
-    est, gt = _equirect(args.estimate), _equirect(args.truth)
-    if est.shape[0] < gt.shape[0]:                      # compare (and show) at the coarser size
-        gt = area_resize_equirect(gt, *est.shape[:2])
-    elif est.shape[0] > gt.shape[0]:
-        est = area_resize_equirect(est, *gt.shape[:2])
+    est, gt = at_coarser(_equirect(args.estimate), _equirect(args.truth))   # compared, shown
     m = compare_maps(est, gt)
     rows = [(f"spheres {k}: si-RMSE / angular error °",
              f"{v['si_rmse']:.4f} / {v['angular_deg']:.2f}") for k, v in m["spheres"].items()]

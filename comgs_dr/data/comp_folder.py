@@ -234,8 +234,9 @@ def dataset_cameras(path, res=None, world_from_source=None) -> list[dict]:
                     "fov_x_deg": float(c.fov_x_deg),
                     "width": c.width if res is None else w,
                     "height": c.height if res is None else h})
-    strip = lambda n: str(Path(n).with_suffix("")) if Path(n).suffix.lower() in (  # noqa: E731
-        ".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".exr") else n
+    from comgs_dr.data.images import IMAGE_EXTENSIONS
+    strip = lambda n: str(Path(n).with_suffix("")) \
+        if Path(n).suffix.lower() in IMAGE_EXTENSIONS else n                     # noqa: E731
     base = [Path(strip(c["name"])).name for c in out]
     full = [strip(c["name"]).replace("\\", "/").replace("/", "_") for c in out]
     names = base if len(set(base)) == len(base) else full

@@ -49,7 +49,7 @@ from comgs_dr.data.images import downscale, write_png8
 from comgs_dr.data.synthetic_io import activate_variant
 from comgs_dr.data.placement_probe import render_probe
 from comgs_dr.data.synthetic import ENVMAP_TO_WORLD
-from comgs_dr.data.types import MITSUBA_FROM_LLFF, Camera
+from comgs_dr.data.types import MITSUBA_FROM_LLFF, Camera, up_alignment
 from comgs_dr.lighting.envmap import load_envmap, read_envmap_file, write_exr
 from comgs_dr.lighting.pano_data import auto_exposure
 
@@ -286,7 +286,7 @@ def make_llff_dataset(cfg: LLFFDatasetConfig, progress: bool = False) -> dict:
         if progress:
             print(f"  view {i + 1}/{len(poses)}: near {near:.3f}, far {far:.3f}", flush=True)
     np.save(out / "poses_bounds.npy", np.asarray(rows, np.float64))
-    probe = write_probe(scene, out, cfg) if cfg.probe_height > 0 else None
+    probe = write_probe(scene, out, cfg, poses) if cfg.probe_height > 0 else None
     meta = {"envmap": None if cfg.envmap is None else str(Path(cfg.envmap).resolve()),
             "envmap_scale": scale if cfg.envmap is not None else None, "probe": probe,"generator": GENERATOR_VERSION,
             "config": {**asdict(cfg), "out_dir": str(cfg.out_dir)},
@@ -298,14 +298,13 @@ def make_llff_dataset(cfg: LLFFDatasetConfig, progress: bool = False) -> dict:
     return meta
 
 
-def write_probe(scene, out: Path, cfg: LLFFDatasetConfig) -> dict:
+def write_probe(scene, out: Path, cfg: LLFFDatasetConfig, poses) -> dict:
     """``probes/center.exr``: the light arriving at :data:`PLACEMENT` (``render_probe``,
     ``cfg.probe_height`` rows, 8² strata per pixel) in the frame ``comgs reconstruct`` gives
-    this folder (the LLFF loader turns the world so the mean camera up is +Z), and
-    ``probes/probes.json`` with the position in that frame: ``estimate-light --at`` it and
-    ``compare-light`` against the file."""
-    from comgs_dr.data.llff import load_llff
-    rot = np.asarray(load_llff(out).world_from_source, np.float64)[:3, :3]   # world -> recon
+    this folder (the LLFF loader turns the world so the mean camera up is +Z: the same
+    ``up_alignment`` of the views' ``poses``), and ``probes/probes.json`` with the position in
+    that frame: ``estimate-light --at`` it and ``compare-light`` against the file."""
+    rot = up_alignment(list(poses), "auto", str(out))[:3, :3]                 # world -> recon
     pos = rot @ np.asarray(PLACEMENT, np.float64)
     img = render_probe(scene, PLACEMENT, int(cfg.probe_height), 8, cfg.seed,
                        world_from_probe=rot.T)

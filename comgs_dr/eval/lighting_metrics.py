@@ -363,6 +363,16 @@ def irradiance(env, normal) -> float:
     return float((lum * cos * pixel_solid_angles(h, w)).sum())
 
 
+def at_coarser(est, gt) -> tuple:
+    """(est, gt) equirect maps with the finer one area-averaged to the coarser one's size, as
+    ``compare-light`` compares and shows them (a coarse truth is not upsampled)."""
+    if est.shape[0] < gt.shape[0]:
+        gt = area_resize_equirect(gt, *est.shape[:2])
+    elif est.shape[0] > gt.shape[0]:
+        est = area_resize_equirect(est, *gt.shape[:2])
+    return est, gt
+
+
 def compare_maps(est, gt, size: int = 48) -> dict:
     """Scores of an estimated map against the true one (both linear equirect; ``est`` is
     area-resampled to ``gt``'s size): array-of-spheres si-RMSE / angular error (diffuse and

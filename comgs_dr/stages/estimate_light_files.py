@@ -15,7 +15,7 @@ from comgs_dr.data.images import to_u8
 from comgs_dr.lighting import envmap
 from comgs_dr.lighting import lights as light_head
 
-__all__ = ["output_paths", "write_outputs", "preview_image", "jsonable"]
+__all__ = ["output_paths", "write_outputs", "preview_image", "jsonable", "sky_text"]
 
 
 jsonable = runlog.json_safe          # numpy to Python, non-finite floats to None (strict JSON)
@@ -70,16 +70,16 @@ def write_outputs(result: dict, out_path) -> dict:
     return paths
 
 
-def _sky_text(meta: dict) -> str:
-    """", upper hemisphere seen X% [(open sky Z%)], of it clipped Y%" when the meta holds
-    them, else "". ``seen_sky_fraction`` counts whatever is observed above the horizon (a
+def sky_text(meta: dict) -> str:
+    """"upper hemisphere seen X% [(open sky Z%)], of it clipped Y%" when the meta holds
+    them, else "" (the preview's mask title and ``estimate-light``'s printout). ``seen_sky_fraction`` counts whatever is observed above the horizon (a
     wall, a ceiling, floaters); ``open_sky_fraction``, when step 1 learned a background, the
     share of it that is that background (the sky itself)."""
     if meta.get("seen_sky_fraction") is None or meta.get("clipped_sky_fraction") is None:
         return ""
     sky = meta.get("open_sky_fraction")
     sky = "" if sky is None else f" (open sky {100 * sky:.1f}%)"
-    return (f", upper hemisphere seen {100 * meta['seen_sky_fraction']:.1f}%{sky}, of it "
+    return (f"upper hemisphere seen {100 * meta['seen_sky_fraction']:.1f}%{sky}, of it "
             f"clipped {100 * meta['clipped_sky_fraction']:.1f}%")   # as the warnings print them
 
 
@@ -96,7 +96,8 @@ def preview_image(result: dict, panel_width: int = 512):
     if meta.get("p_outdoor") is not None:
         lab = f"{lab} (auto, p(outdoor) {meta['p_outdoor']:.2f})"
     panels = [(f"traced input LDR (EV 0), label {lab}", inp["rgb"]),
-              (f"mask (coverage {100 * result['coverage']:.1f}%{_sky_text(meta)})",
+              (f"mask (coverage {100 * result['coverage']:.1f}%"
+               f"{', ' + sky_text(meta) if sky_text(meta) else ''})",
                np.repeat(mask[..., None], 3, -1)),
               ("normal (n/2 + 1/2)", np.where(mask[..., None] > 0, inp["normal"] * 0.5 + 0.5, 0))]
     for ev in sorted(result["ldrs"], reverse=True):
