@@ -177,7 +177,9 @@ def test_sop_shadows_match_traced_shadows(sphere_over_plane):
     tr, _ = _render(tmp, shapes, "trace")
     none, _ = _render(tmp, shapes, "noshadow", probes_ball=str(tmp / "ball.npz"))
     assert all(np.isfinite(a).all() for a in (sop, tr, none))
-    buf = group_gbuffer(sc, sc.sensors()[0], [0, 1])
+    with pytest.raises(ValueError, match="groups given for \\['ball'\\]"):
+        group_gbuffer(sc, sc.sensors()[0], {"ball": 0})
+    buf = group_gbuffer(sc, sc.sensors()[0], {"scene": 0, "ball": 1})
     ground = (np.asarray(buf.weight[0]) > 0.99).reshape(40, 40)
     lum = lambda a: a[..., :3].mean(-1)                         # noqa: E731
     dark_tr = ground & (lum(tr) < 0.6 * lum(none))              # the traced shadow
@@ -208,7 +210,7 @@ def test_depth_compositing_at_an_occlusion_boundary(sphere_over_plane):
     wall["quats"][:] = [np.cos(np.pi / 4), np.sin(np.pi / 4), 0, 0]    # normal along -y
     wall = SurfelParams.from_numpy(**wall)
     img, sc = _render(tmp, {"scene": wall, "ball": b}, "paste")
-    buf = group_gbuffer(sc, sc.sensors()[0], [0, 1])
+    buf = group_gbuffer(sc, sc.sensors()[0], {"scene": 0, "ball": 1})
     Wb = np.asarray(buf.weight[1]).reshape(40, 40)
     Ws = np.asarray(buf.weight[0]).reshape(40, 40)
     assert np.all(Wb + Ws <= 1.0 + 1e-5)
@@ -248,7 +250,7 @@ def test_two_objects_shadow_each_other(sphere_over_plane):
               env="low.exr", eye=(0.0, -4.0, 2.0))
     with_a, sc = _render(tmp, shapes, "sop", probes_b=str(tmp / "b.npz"), **kw)
     without, _ = _render(tmp, shapes, "sop", probes_b=str(tmp / "b_alone.npz"), **kw)
-    buf = group_gbuffer(sc, sc.sensors()[0], [0, 1, 2])
+    buf = group_gbuffer(sc, sc.sensors()[0], {"scene": 0, "a": 1, "b": 2})
     Wb = np.asarray(buf.weight[2]).reshape(40, 40) > 0.9
     assert with_a[Wb].mean() < 0.9 * without[Wb].mean()       # a's shadow on b
     # each object casts its shadow on the ground: a's between the two, b's beyond b
@@ -363,6 +365,7 @@ def test_compose_cache_recomputes_only_what_a_moved_object_touches(tmp_path, cap
     assert m["frames"] == 4 and len(m["per_frame"]) == 4 and np.isfinite(m["psnr"])
     assert (out / "renders" / "sop" / "r_3.png").is_file()
     assert json.loads((out / "metrics_sop.json").read_text())["ssim"] == m["ssim"]
+    first = [np.asarray(Image.open(out / "renders" / "sop" / f"r_{i}.png")) for i in range(4)]
     # the dataset folder itself: its test views, loaded as step 1 loads them (same frames)
     (out / "renders" / "sop" / "old_frame.png").write_bytes(b"")     # an earlier run's frame
     with caplog.at_level("WARNING", logger="comgs_dr.stages.render_comp"):
@@ -371,13 +374,16 @@ def test_compose_cache_recomputes_only_what_a_moved_object_touches(tmp_path, cap
     assert "metrics_sop.json is from an earlier run" in caplog.text
     assert m2["frames"] == 4 and m2["resolution"] == [24, 24] and m2["cameras"] == str(tmp_path / "data")
     assert (out / "renders" / "sop" / "r_3.png").is_file()
-    # the same cameras, to rounding (2e-16; the renders are not compared pixel for pixel:
-    # in some runs 7 % of one frame's pixels differed by up to 68/255 between the two)
+    # the same cameras (to 2e-16) and the same pixels: a reloaded scene renders the same
+    # (surfel_shapes sorts the shapes; before, 1 load in ~6 changed 7 % of a frame's pixels)
     from comgs_dr.data.comp_folder import camera_source
     for c1, c2 in zip(camera_source(tmp_path / "data" / "transforms_test.json", np.eye(4)),
                       camera_source(tmp_path / "data", np.eye(4))):
         assert c1["name"] == c2["name"]
         np.testing.assert_allclose(c1["to_world"], c2["to_world"], atol=1e-9)
+    for i in range(4):
+        np.testing.assert_array_equal(
+            np.asarray(Image.open(out / "renders" / "sop" / f"r_{i}.png")), first[i])
     with pytest.raises(FileNotFoundError, match="dataset folder not found"):
         render_comp(out, tmp_path / "nowhere", "sop", progress=False)
     with pytest.raises(ValueError, match="no such object"):

@@ -129,3 +129,14 @@ def test_a_new_background_reuses_the_compiled_kernels(rng):
     assert 0.05 < w.mean() < 0.95                            # some pixels see the background
     # colour = Σ T α c + T_final · b, T_final = 1 − W: a step of 0.25 in b moves it by 0.25 (1 − W)
     np.testing.assert_allclose(c1 - c0, np.broadcast_to(0.25 * (1 - w), c0.shape), atol=2e-5)
+
+
+def test_surfel_shapes_come_sorted_by_id(rng):
+    """``mi.load_dict`` loads a scene's children in parallel, in no fixed order; the slots
+    follow ``surfel_shapes``, which sorts by id, so a reloaded scene renders the same."""
+    d = {"type": "scene"}
+    for k in ("zeta", "alpha", "mid", "beta"):
+        d[k] = SurfelShapeBase.from_params(random_surfels(rng, n=5), id=k)
+    for _ in range(4):
+        ids = [s.id() for s in common.surfel_shapes(mi.load_dict(d), "test")]
+        assert ids == ["alpha", "beta", "mid", "zeta"]

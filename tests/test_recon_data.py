@@ -528,3 +528,33 @@ def test_bad_intrinsics(nerf):
     _raises(lambda: D.load_nerf_synthetic(nerf), "r_0.png", "fx=10 and fy=12")
     _edit_json(nerf / "transforms_train.json", lambda d: d.update(fl_y=10.0, k1=0.1))
     _raises(lambda: D.load_nerf_synthetic(nerf), nerf / "transforms_train.json", "undistort")
+
+
+@pytest.mark.parametrize("fmt", ["nerf", "colmap", "llff"])
+def test_cameras_only_match_the_full_load(tmp_path, rng, fmt):
+    """``pixels=False`` (what compose, relight, export-mesh and render-comp load): the same
+    cameras, names, splits and frame as the full load, the images not decoded (zero-stride
+    blanks of the right shape)."""
+    if fmt == "nerf":
+        write_nerf(tmp_path, {"train": ring_cameras(5), "test": ring_cameras(2)}, 26, 18, rng)
+    elif fmt == "colmap":
+        make_colmap(tmp_path, rng)
+    else:
+        write_llff(tmp_path, ring_cameras(9, up=(0, -1, 0), height=0.5), 52, 36, 44.0, rng)
+    full = D.load_dataset(tmp_path, resolution_scale=2)
+    cams = D.load_dataset(tmp_path, resolution_scale=2, pixels=False)
+    np.testing.assert_array_equal(full.world_from_source, cams.world_from_source)
+    for split in ("train", "test"):
+        a, b = getattr(full, split), getattr(cams, split)
+        assert [v.name for v in a] == [v.name for v in b] and len(a) > 0
+        for va, vb in zip(a, b):
+            np.testing.assert_array_equal(va.camera.to_world, vb.camera.to_world)
+            assert (va.camera.width, va.camera.height, va.camera.fov_x_deg,
+                    va.camera.principal_point_offset_x) == (
+                vb.camera.width, vb.camera.height, vb.camera.fov_x_deg,
+                vb.camera.principal_point_offset_x)
+            assert vb.image.shape == va.image.shape and vb.image.strides == (0, 0, 0)
+            assert not vb.image.any() and vb.mask is None
+    (tmp_path / "broken.png").write_bytes(b"\x89PNG not really")
+    from comgs_dr.data.images import image_size
+    _raises(lambda: image_size(tmp_path / "broken.png"), "broken.png", "corrupt")

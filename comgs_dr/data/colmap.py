@@ -41,7 +41,8 @@ _MODEL_FILES = ("cameras.bin", "cameras.txt")
 
 def load_colmap(root, images: str = "images", masks: str | None = None,
                 resolution_scale: int = 1, test_every: int = 8, up: str = "auto",
-                max_views: int | None = None, white_background: bool = False) -> SceneData:
+                max_views: int | None = None, white_background: bool = False,
+                pixels: bool = True) -> SceneData:
     """Load a COLMAP scene: model at ``root/sparse/0`` or ``root/sparse``, images in
     ``root/images`` (folder name or absolute path; files may be resized copies, e.g.
     ``images_2``: intrinsics follow the file size).
@@ -90,7 +91,7 @@ def load_colmap(root, images: str = "images", masks: str | None = None,
         points = (points @ rot[:3, :3].T).astype(np.float32)
     bg = (1.0, 1.0, 1.0) if white_background else (0.0, 0.0, 0.0)
     load = lambda idx: [load_view(f["name"], f["path"], f["to_world"], f["intrinsics"], k, bg,
-                                  mask_path=mask_paths.get(f["name"]))
+                                  mask_path=mask_paths.get(f["name"]), pixels=pixels)
                         for f in subsample([frames[i] for i in idx], max_views)]
     return SceneData(train=load(tr), test=load(te), points=points, colors=colors,
                      world_from_source=rot, white_background=bool(white_background),

@@ -215,9 +215,9 @@ def dataset_cameras(path, res=None, world_from_source=None) -> list[dict]:
     the folder is not the one the scene was reconstructed from. Frame names are the views'
     file names without extension (as :func:`read_cameras` names a transforms file's frames),
     or, when two coincide (``cam0/0001.jpg``, ``cam1/0001.jpg``), their paths with "/" as "_".
-    The loader reads the images too."""
+    Only the images' headers are read (their sizes), not their pixels."""
     from comgs_dr.data.load import load_dataset
-    data = load_dataset(path)
+    data = load_dataset(path, pixels=False)
     if world_from_source is not None and not np.allclose(
             np.asarray(data.world_from_source, np.float64),
             np.asarray(world_from_source, np.float64), atol=1e-6):

@@ -32,6 +32,18 @@ def _open(path: Path):
         raise DatasetError(f"{path}: unreadable or corrupt image ({e})") from None
 
 
+def image_size(path) -> tuple[int, int]:
+    """(width, height) of an image file from its header (no pixels decoded)."""
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: image file not found") from None
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
+        raise DatasetError(f"{path}: unreadable or corrupt image ({e})") from None
+
+
 def read_image(path) -> np.ndarray:
     """[H, W, 3 or 4] float32 in [0, 1]; 4 channels when the file has alpha."""
     im = _open(Path(path))
@@ -126,10 +138,21 @@ def scaled_intrinsics(fx, fy, cx, cy, ref_w, ref_h, where: str) -> Intrinsics:
 
 
 def load_view(name: str, path: Path, to_world: np.ndarray, intrinsics: Intrinsics, k: int,
-              background=None, mask_path: Path | None = None) -> View:
+              background=None, mask_path: Path | None = None, pixels: bool = True) -> View:
     """Read one view: composite alpha onto ``background`` (mask = alpha), or read
     ``mask_path``; downscale by ``k``; intrinsics(w, h) are pixel fx, fy, cx, cy at the
-    file's resolution."""
+    file's resolution. ``pixels`` False: the camera only; the file's header gives its size
+    and ``image`` is a read-only zero-stride array of zeros of the view's shape (no memory;
+    what needs the cameras of a 4K capture does not decode gigabytes), ``mask`` None."""
+    if not pixels:
+        w0, h0 = image_size(path)
+        if w0 < k or h0 < k:
+            raise DatasetError(f"{path}: image {w0}x{h0} is smaller than resolution_scale {k}")
+        fx, fy, cx, cy = intrinsics(w0, h0)
+        cam = Camera.from_intrinsics(to_world, w0 // k, h0 // k, fx / k, fy / k, cx / k, cy / k,
+                                     where=str(path))
+        blank = np.broadcast_to(np.zeros((), np.float32), (h0 // k, w0 // k, 3))
+        return View(name=name, camera=cam, image=blank, mask=None, path=str(path))
     img = read_image(path)                             # [H, W, 3|4]
     h0, w0 = img.shape[:2]
     mask = None

@@ -34,7 +34,7 @@ from comgs_dr.data.types import (
 
 def load_llff(root, resolution_scale: int = 1, test_every: int = 8, images: str | None = None,
               up: str = "auto", max_views: int | None = None,
-              white_background: bool = False) -> SceneData:
+              white_background: bool = False, pixels: bool = True) -> SceneData:
     """Load an LLFF folder; every ``test_every``-th image (sorted by name) is test.
 
     ``images``: image folder under ``root`` (None: ``images`` if present, else the
@@ -75,7 +75,8 @@ def load_llff(root, resolution_scale: int = 1, test_every: int = 8, images: str 
                        "intrinsics": scaled_intrinsics(focal, focal, w / 2, h / 2, w, h, where)})
     rot, tr, te = aligned_split(frames, up, str(pb_path), test_every)
     bg = (1.0, 1.0, 1.0) if white_background else (0.0, 0.0, 0.0)
-    load = lambda idx: [load_view(f["name"], f["path"], f["to_world"], f["intrinsics"], k, bg)
+    load = lambda idx: [load_view(f["name"], f["path"], f["to_world"], f["intrinsics"], k, bg,
+                                  pixels=pixels)
                         for f in subsample([frames[i] for i in idx], max_views)]
     near_far = {f["name"]: tuple(map(float, b)) for f, b in zip(frames, pb[:, 15:])}
     train, test = load(tr), load(te)

@@ -67,7 +67,8 @@ def detect_format(path) -> str:
 
 def load_dataset(path, format: str = "auto", **kw) -> SceneData:
     """Load a dataset folder, detecting its format (or forcing ``format``); ``kw`` go to
-    the loader (e.g. ``resolution_scale``, ``max_views``, ``white_background``, ``up``).
+    the loader (e.g. ``resolution_scale``, ``max_views``, ``white_background``, ``up``;
+    ``pixels=False``: cameras only, each image's size read from its header).
     A path to a transforms json or to ``poses_bounds.npy`` means its folder."""
     root = Path(path)
     if root.is_file():

@@ -38,7 +38,8 @@ _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 
 def load_nerf_synthetic(root, white_background: bool = False, resolution_scale: int = 1,
-                        max_views: int | None = None, test_every: int = 8) -> SceneData:
+                        max_views: int | None = None, test_every: int = 8,
+                        pixels: bool = True) -> SceneData:
     """Load a NeRF-synthetic folder.
 
     Without ``transforms_test.json`` every ``test_every``-th train frame (0, 8, 16, ...) is
@@ -64,7 +65,8 @@ def load_nerf_synthetic(root, white_background: bool = False, resolution_scale: 
             raise DatasetError(f"{root / 'transforms_train.json'}: no training frames left "
                                f"after holding out every {test_every}th frame")
     bg = (1.0, 1.0, 1.0) if white_background else (0.0, 0.0, 0.0)
-    load = lambda fr: [load_view(f["name"], f["path"], f["to_world"], f["intrinsics"], k, bg)
+    load = lambda fr: [load_view(f["name"], f["path"], f["to_world"], f["intrinsics"], k, bg,
+                                 pixels=pixels)
                        for f in subsample(fr, max_views)]
     points, colors = read_points_ply(root / "points3d.ply") if (root / "points3d.ply").is_file() \
         else (None, None)

@@ -28,7 +28,8 @@ def sample_visible_points(scene, cameras: list[dict], images: list[np.ndarray], 
     ``images`` [H, W, ≥3] linear RGB(A) renders of those cameras (colour: sRGB of the first
     view that sees the point). Raises ValueError if no point is seen often enough."""
 
-    shapes = [s for s in scene.shapes() if not s.is_emitter()]
+    # sorted by id: a scene's children load in parallel, in no fixed order
+    shapes = sorted((s for s in scene.shapes() if not s.is_emitter()), key=lambda s: s.id())
     area = np.array([float(np.asarray(s.surface_area()).ravel()[0]) for s in shapes])
     if not shapes or area.sum() <= 0:
         raise ValueError("sample_visible_points: the scene has no surface to sample")

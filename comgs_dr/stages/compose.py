@@ -166,7 +166,7 @@ def compose(scene_run, objects: dict, placement, out, env=None, estimator=None,
     files = {n: object_files(r) for n, r in objects.items()}
 
     t = time.perf_counter()
-    data = load_run_dataset(scene_run, info)
+    data = load_run_dataset(scene_run, info, pixels=False)     # cameras only
     W = np.asarray(data.world_from_source, np.float64)
     scene_params, scene_meta = load_ply(str(scene_ply), return_meta=True)
     placed, sims, bounds = {}, {}, {}

@@ -226,7 +226,7 @@ def export_mesh(run_dir, out, cfg: MeshConfig = MeshConfig(), progress: bool = T
     params, src, ply = _surfels(run_dir, cfg.colour)
     if params.count == 0:
         raise ValueError(f"export-mesh: {ply} has no surfels")
-    data = load_run_dataset(run_dir, info)
+    data = load_run_dataset(run_dir, info, pixels=False)       # cameras only
     views = select_views(data.train, cfg.views)
     if cfg.method == "tsdf":
         verts, faces, colors, extra = _tsdf(params, views, _bounds(params, cfg), cfg, src,

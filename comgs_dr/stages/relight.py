@@ -103,7 +103,7 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
         raise FileNotFoundError(f"{log} not found: run `comgs decompose {run_dir}` first")
     summary = json.loads(log.read_text())["summary"]
     info = read_run_info(run_dir)
-    data = load_run_dataset(run_dir, info)
+    data = load_run_dataset(run_dir, info, pixels=False)       # cameras only
     vs = select_views(data.test if views == "test" else data.train, max_views)
     params = load_ply(str(mdir / "point_cloud.ply"))
     if edit is not None and not edit.empty:

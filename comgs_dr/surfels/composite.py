@@ -46,8 +46,13 @@ _VEC3 = ("color", "normal", "albedo")        # 3-channel buffers; the others are
 
 
 def surfel_shapes(scene: mi.Scene, who: str) -> list:
-    """All ``surfels`` shapes of a scene; any other shape is a clear error."""
-    shapes = list(scene.shapes())
+    """All ``surfels`` shapes of a scene, sorted by id; any other shape is a clear error.
+
+    Sorted because ``mi.load_dict`` loads a scene's children in parallel, so ``scene.shapes()``
+    comes in a different order from one load to the next; the slots (and with them which
+    random numbers each object's rays take) would follow it and a render would not repeat.
+    """
+    shapes = sorted(scene.shapes(), key=lambda s: s.id())
     out = [s for s in shapes if is_surfel_shape(s)]
     others = [s for s in shapes if not is_surfel_shape(s)]
     if others:

@@ -50,12 +50,19 @@ class GroupBuffers:
         return x, dr.gather(mi.Vector3f, self.normal[g], pix), mi.Vector3f(-d)
 
 
-def group_gbuffer(scene, sensor, group_of_shape: list[int], K: int = 32,
+def group_gbuffer(scene, sensor, group_of_shape: list[int] | dict[str, int], K: int = 32,
                   colour_groups=()) -> GroupBuffers:
-    """Layers of ``sensor``'s pixels (no AD). ``group_of_shape[j]``: the group of the j-th
-    surfels shape of ``scene`` (groups are 0..G−1); ``colour_groups``: groups whose
-    radiance-field colour is accumulated (SH evaluated only for those hits)."""
+    """Layers of ``sensor``'s pixels (no AD). ``group_of_shape``: {shape id: group}, or a
+    list whose j-th entry is the group of the j-th shape of ``composite.surfel_shapes`` (sorted
+    by id); groups are 0..G−1. ``colour_groups``: groups whose radiance-field colour is
+    accumulated (SH evaluated only for those hits)."""
     shapes = composite.surfel_shapes(scene, "group_gbuffer")
+    if isinstance(group_of_shape, dict):
+        ids = [s.id() for s in shapes]
+        if set(group_of_shape) != set(ids):
+            raise ValueError(f"group_gbuffer: groups given for {sorted(group_of_shape)} but the "
+                             f"scene's surfels shapes are {ids}")
+        group_of_shape = [group_of_shape[i] for i in ids]
     if len(group_of_shape) != len(shapes):
         raise ValueError(f"group_gbuffer: {len(shapes)} surfels shapes but "
                          f"{len(group_of_shape)} group entries")

@@ -46,11 +46,12 @@ def read_run_info(run_dir: Path) -> dict:
     return info
 
 
-def load_run_dataset(run_dir: Path, info: dict | None = None):
-    """The dataset of a run, loaded as step 1 loaded it (background, resolution scale)."""
+def load_run_dataset(run_dir: Path, info: dict | None = None, pixels: bool = True):
+    """The dataset of a run, loaded as step 1 loaded it (background, resolution scale);
+    ``pixels`` False: its cameras only (``images.load_view``)."""
     info = info or read_run_info(run_dir)
     return load_dataset(info["data"], white_background=info["white_background"],
-                        resolution_scale=info["resolution_scale"])
+                        resolution_scale=info["resolution_scale"], pixels=pixels)
 
 
 def select_views(views: list, max_views: int | None) -> list:
