@@ -144,21 +144,12 @@ def load_view(name: str, path: Path, to_world: np.ndarray, intrinsics: Intrinsic
     file's resolution. ``pixels`` False: the camera only; the file's header gives its size
     and ``image`` is a read-only zero-stride array of zeros of the view's shape (no memory;
     what needs the cameras of a 4K capture does not decode gigabytes), ``mask`` None."""
-    if not pixels:
-        w0, h0 = image_size(path)
-        if w0 < k or h0 < k:
-            raise DatasetError(f"{path}: image {w0}x{h0} is smaller than resolution_scale {k}")
-        fx, fy, cx, cy = intrinsics(w0, h0)
-        cam = Camera.from_intrinsics(to_world, w0 // k, h0 // k, fx / k, fy / k, cx / k, cy / k,
-                                     where=str(path))
-        blank = np.broadcast_to(np.zeros((), np.float32), (h0 // k, w0 // k, 3))
-        return View(name=name, camera=cam, image=blank, mask=None, path=str(path))
-    img = read_image(path)                             # [H, W, 3|4]
-    h0, w0 = img.shape[:2]
+    img = read_image(path) if pixels else None         # [H, W, 3|4]
+    w0, h0 = image_size(path) if img is None else (img.shape[1], img.shape[0])
     mask = None
-    if img.shape[2] == 4:
+    if img is not None and img.shape[2] == 4:
         img, mask = composite(img, background if background is not None else (0.0, 0.0, 0.0))
-    if mask_path is not None:
+    if img is not None and mask_path is not None:
         mask = read_mask(mask_path)                    # [H, W]
         if mask.shape != (h0, w0):
             raise DatasetError(f"{mask_path}: mask is {mask.shape[1]}x{mask.shape[0]} but its "
@@ -166,10 +157,13 @@ def load_view(name: str, path: Path, to_world: np.ndarray, intrinsics: Intrinsic
     if w0 < k or h0 < k:
         raise DatasetError(f"{path}: image {w0}x{h0} is smaller than resolution_scale {k}")
     fx, fy, cx, cy = intrinsics(w0, h0)
-    img = downscale(np.ascontiguousarray(img, np.float32), k)
-    mask = None if mask is None else downscale(mask.astype(np.float32), k)
     cam = Camera.from_intrinsics(to_world, w0 // k, h0 // k, fx / k, fy / k, cx / k, cy / k,
                                  where=str(path))
+    if img is None:
+        blank = np.broadcast_to(np.zeros((), np.float32), (h0 // k, w0 // k, 3))
+        return View(name=name, camera=cam, image=blank, mask=None, path=str(path))
+    img = downscale(np.ascontiguousarray(img, np.float32), k)
+    mask = None if mask is None else downscale(mask.astype(np.float32), k)
     return View(name=name, camera=cam, image=np.clip(img, 0.0, 1.0), mask=mask, path=str(path))
 
 
