@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 from PIL import Image
+from conftest import error_chain_text
 
 from comgs_dr.core import octahedral as octa
 from comgs_dr.core.cameras import perspective
@@ -315,7 +316,7 @@ def _nerf_folder(root, n=4, res=24):
     return root
 
 
-def test_compose_cache_recomputes_only_what_a_moved_object_touches(tmp_path, caplog):
+def test_compose_cache_recomputes_only_what_a_moved_object_touches(tmp_path, caplog, capsys):
     from comgs_dr.stages.compose import ComposeConfig, compose
     from comgs_dr.train.run import write_run_info
     data = _nerf_folder(tmp_path / "data")
@@ -355,6 +356,17 @@ def test_compose_cache_recomputes_only_what_a_moved_object_touches(tmp_path, cap
     # the folder renders: from its XML in any Mitsuba pipeline, and through render-comp
     xml = mi.load_file(str(out / "composition.xml"))
     assert np.isfinite(np.asarray(mi.render(xml, spp=16))).all()
+    # ... from a copy of the folder too: the XML names the folder's files relative to itself
+    import shutil
+    copy = shutil.copytree(out, tmp_path / "moved")
+    assert str(out) not in (copy / "composition.xml").read_text()
+    (copy / "probes" / "b.npz").unlink()           # a file missing: a clear error at load
+    with pytest.raises(Exception) as ei:
+        mi.load_file(str(copy / "composition.xml"))
+    assert "the 'probes_b' file 'probes/b.npz' is not found" in error_chain_text(ei.value)
+    shutil.copy(out / "probes" / "b.npz", copy / "probes" / "b.npz")
+    np.testing.assert_array_equal(np.asarray(mi.render(mi.load_file(str(copy / "composition.xml")), spp=16, seed=1)),
+                                  np.asarray(mi.render(xml, spp=16, seed=1)))
     from comgs_dr.stages.render_comp import render_comp
     gt = tmp_path / "gt"
     gt.mkdir()
@@ -389,6 +401,31 @@ def test_compose_cache_recomputes_only_what_a_moved_object_touches(tmp_path, cap
     with pytest.raises(ValueError, match="no such object"):
         render_comp(out, tmp_path / "data" / "transforms_test.json", "sop", gt,
                     {"zebra": "albedo=1,0,0"}, progress=False)
+    cams_json = tmp_path / "data" / "transforms_test.json"
+    with pytest.raises(ValueError, match="do not apply to variant 'paste'"):
+        render_comp(out, cams_json, "paste", materials={"a": "albedo=1,0,0"}, progress=False)
+    with pytest.raises(ValueError, match="res 16×16 is not the ground truth's size"):
+        render_comp(out, cams_json, "sop", gt, res=16, progress=False)      # before any frame
+    with pytest.raises(ValueError, match="beyond the 8192²"):
+        render_comp(out, cams_json, "sop", res=(10000, 9000), progress=False)
+    only = tmp_path / "camsonly"                    # a folder with just transforms_test.json
+    only.mkdir()
+    shutil.copy(cams_json, only / "transforms_test.json")
+    assert render_comp(out, only, "noshadow", res=8, rays=4, progress=False)["frames"] == 4
+    # the command line: an input error raised inside mi.render (probes that exist but are
+    # not baked) exits 2 with its own message, not Dr.Jit's custom-op RuntimeError
+    from comgs_dr.cli import main
+    raw = tmp_path / "raw"
+    shutil.copytree(out, raw)
+    pa = ProbeSet.load(out / "probes" / "a.npz")
+    ProbeSet(pa.positions, pa.normals, pa.res, pa.radius).save(raw / "probes" / "a.npz")
+    capsys.readouterr()
+    assert main(["render-comp", str(raw), "--cameras", str(cams_json), "--res", "8",
+                 "--rays", "4", "--quiet"]) == 2
+    assert "probes of 'a' are not baked" in capsys.readouterr().err
+    assert main(["render-comp", str(out), "--cameras", str(cams_json), "--variant", "paste",
+                 "--material", "a:albedo=1,0,0", "--quiet"]) == 2
+    assert "--material does not apply to --variant paste" in capsys.readouterr().err
     # placement errors name the object
     (tmp_path / "bad.json").write_text(json.dumps({"a": {"transform": np.diag([1, 2, 1, 1.0]).ravel().tolist()},
                                                    "b": {"location": [0, 0, 0]}}))

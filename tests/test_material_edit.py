@@ -14,6 +14,8 @@ def test_parse_specs():
                 "metallic=a", "roughness=0.1,0.2", ""):
         with pytest.raises(ValueError):
             parse_material_spec(bad)
+    with pytest.raises(ValueError, match="roughness given more than once"):
+        parse_material_spec("roughness=0.3,roughness=0.9")
 
 
 def test_edit_whole_object_indices_and_box(rng, tmp_path):

@@ -26,6 +26,16 @@ def test_set_variant_refuses(bad, msg):
         comgs_dr.set_variant(bad)
 
 
+def test_cuda_without_a_device_is_an_input_error():
+    import drjit as dr
+    import mitsuba as mi
+    if "cuda_ad_rgb" not in mi.variants() or dr.has_backend(dr.JitBackend.CUDA):
+        pytest.skip("needs a Mitsuba build with cuda_ad_rgb on a machine without a GPU")
+    with pytest.raises(ValueError, match="no CUDA device.*use llvm_ad_rgb"):
+        comgs_dr.set_variant("cuda_ad_rgb")
+    assert comgs_dr.set_variant("llvm_ad_rgb") == "llvm_ad_rgb"
+
+
 def test_plugins_follow_variant_switches():
     """Run in a fresh interpreter: the plugins must be usable after any mi.set_variant."""
     r = _run("""

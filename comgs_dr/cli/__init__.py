@@ -73,3 +73,22 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as e:                 # full disk, unwritable folder
         print(f"comgs {args.command}: error: {e}", file=sys.stderr)
         return 1
+    except RuntimeError as e:            # mi.render wraps a plugin's error in its custom op
+        cause = input_cause(e)
+        if cause is None:
+            raise
+        print(f"comgs {args.command}: error: {cause}", file=sys.stderr)
+        return 2
+
+
+def input_cause(exc: BaseException) -> BaseException | None:
+    """The input error (FileNotFoundError, ValueError, ImportError) that caused ``exc``, or
+    None: Dr.Jit re-raises an exception of ``mi.render``'s custom op as a RuntimeError
+    ("error while performing a custom differentiable operation") whose cause is the plugin's."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, (FileNotFoundError, ValueError, ImportError)):
+            return exc
+        exc = exc.__cause__ or exc.__context__
+    return None

@@ -57,7 +57,8 @@ def _add_compose(sub) -> None:
     p.add_argument("--scene-label", metavar="M.json", default=None,
                    help="the classifier of label auto (default: the shipped one; e.g. from "
                    "`comgs train-scene-label`; not with --env)")
-    p.add_argument("--variant", default="auto")
+    p.add_argument("--variant", default="auto", metavar="MITSUBA_VARIANT",
+                   help="Mitsuba variant: auto (default), llvm_ad_rgb (CPU) or cuda_ad_rgb")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_compose)
 
@@ -139,11 +140,15 @@ def _add_render_comp(sub) -> None:
     p.add_argument("--gt-dir", metavar="DIR", help="ground-truth PNGs named like the frames")
     p.add_argument("--material", action="append", default=[],
                    metavar="NAME:albedo=R,G,B,roughness=X,metallic=Y",
-                   help="override an object's material (repeatable)")
+                   help="override an object's material (repeatable; not with --variant "
+                        "paste): albedo=R,G,B (linear, in [0, 1]) or scale=S[,S,S] "
+                        "(multiplies the albedo), roughness=X, metallic=Y")
     p.add_argument("--res", type=int, nargs="+", metavar="W [H]",
                    help="image size (default: the ground truth's, else the camera file's w/h)")
     p.add_argument("--rays", type=int, metavar="N", help="S_r (default 256)")
-    p.add_argument("--variant-mitsuba", dest="mi_variant", default="auto", metavar="V")
+    p.add_argument("--variant-mitsuba", dest="mi_variant", default="auto", metavar="MITSUBA_VARIANT",
+                   help="Mitsuba variant: auto (default), llvm_ad_rgb (CPU) or cuda_ad_rgb "
+                        "(--variant is the composite variant)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_render_comp)
 
@@ -151,6 +156,9 @@ def _add_render_comp(sub) -> None:
 def _cmd_render_comp(args) -> int:
     set_variant(args.mi_variant)
     mats = {}
+    if args.material and args.variant == "paste":
+        raise ValueError("--material does not apply to --variant paste (it shows the objects' "
+                         "captured radiance); use sop, trace or noshadow")
     for spec in args.material:
         name, sep, rest = spec.partition(":")
         if not sep:

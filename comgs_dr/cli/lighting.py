@@ -58,7 +58,8 @@ def _add_estimate_light(sub) -> None:
                         "embeddings come from its text encoder or DIR/ev_embeddings.pt "
                         "({'xi_b': [L, D], 'xi_d': [L, D]})")
     p.add_argument("--steps", type=int, default=30, help="diffusion steps (backend diffusers)")
-    p.add_argument("--variant", default="auto")
+    p.add_argument("--variant", default="auto", metavar="MITSUBA_VARIANT",
+                   help="Mitsuba variant: auto (default), llvm_ad_rgb (CPU) or cuda_ad_rgb")
     add_config_arguments(p, EstimateConfig)
     p.set_defaults(func=_cmd_estimate_light)
 

@@ -47,7 +47,8 @@ def _add_reconstruct(sub) -> None:
                    help="2DGS clone/split + opacity resets (densify until half of the run, reset "
                         "at its quarter and half; default: prune only, measured better on both "
                         "presets within CPU budgets; useful after a random init)")
-    p.add_argument("--variant", default="auto")
+    p.add_argument("--variant", default="auto", metavar="MITSUBA_VARIANT",
+                   help="Mitsuba variant: auto (default), llvm_ad_rgb (CPU) or cuda_ad_rgb")
     p.add_argument("--quiet", action="store_true")
     add_config_arguments(p, RadianceConfig, exclude=("preset",), presets=RECON_PRESETS)
     p.set_defaults(func=_cmd_reconstruct, preset="object")
@@ -73,7 +74,8 @@ def _add_render(sub) -> None:
     p = sub.add_parser("render", help="render a reconstruction run and write metrics")
     p.add_argument("run", metavar="RUN_DIR")
     p.add_argument("--views", choices=("test", "train"), default="test")
-    p.add_argument("--variant", default="auto")
+    p.add_argument("--variant", default="auto", metavar="MITSUBA_VARIANT",
+                   help="Mitsuba variant: auto (default), llvm_ad_rgb (CPU) or cuda_ad_rgb")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_render)
 
@@ -101,7 +103,8 @@ def _add_export_mesh(sub) -> None:
     p.add_argument("--resolution", type=int, default=None, metavar="N",
                    help="TSDF voxels along the longest side; Poisson octree depth log2(N)")
     add_config_arguments(p, MeshConfig, presets=MESH_PRESETS)
-    p.add_argument("--variant", default="auto")
+    p.add_argument("--variant", default="auto", metavar="MITSUBA_VARIANT",
+                   help="Mitsuba variant: auto (default), llvm_ad_rgb (CPU) or cuda_ad_rgb")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_export_mesh)
 
@@ -136,7 +139,8 @@ def _add_decompose(sub) -> None:
                    help="leave out the indirect term")
     p.add_argument("--time-limit", type=float, dest="time_limit_s",
                    help="stop (and save) after this many seconds")
-    p.add_argument("--variant", default="auto")
+    p.add_argument("--variant", default="auto", metavar="MITSUBA_VARIANT",
+                   help="Mitsuba variant: auto (default), llvm_ad_rgb (CPU) or cuda_ad_rgb")
     p.add_argument("--quiet", action="store_true")
     add_config_arguments(p, MaterialConfig)
     p.set_defaults(func=_cmd_decompose)
@@ -179,7 +183,8 @@ def _add_relight(sub) -> None:
     p.add_argument("--max-views", type=int)
     p.add_argument("--scale", type=float, default=1.0, help="env map radiance scale")
     p.add_argument("--out", metavar="DIR")
-    p.add_argument("--variant", default="auto")
+    p.add_argument("--variant", default="auto", metavar="MITSUBA_VARIANT",
+                   help="Mitsuba variant: auto (default), llvm_ad_rgb (CPU) or cuda_ad_rgb")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_relight)
 

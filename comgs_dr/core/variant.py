@@ -34,11 +34,14 @@ def set_variant(name: str = "auto") -> str:
         raise ValueError(
             f"set_variant('{name}'): comgs_dr needs a JIT variant (llvm_ad_rgb or "
             "cuda_ad_rgb); scalar variants cannot run its Dr.Jit kernels")
+    usable = [v for v in available if is_supported_variant(v)]
     if name not in available:
-        raise ValueError(f"set_variant('{name}'): unknown variant; this Mitsuba build "
-                         f"has {', '.join(available)}")
+        raise ValueError(f"set_variant('{name}'): unknown variant; comgs_dr runs in "
+                         f"{', '.join(['auto'] + usable)} (auto: cuda_ad_rgb where a CUDA "
+                         f"device is usable, else llvm_ad_rgb)")
     if name.startswith("cuda_") and not dr.has_backend(dr.JitBackend.CUDA):
-        raise RuntimeError(f"set_variant('{name}'): no CUDA device/driver is available")
+        raise ValueError(f"set_variant('{name}'): no CUDA device/driver is available here; "
+                         f"use llvm_ad_rgb (the CPU) or auto")
     if not is_supported_variant(name):
         raise ValueError(f"set_variant('{name}'): comgs_dr runs in llvm_ad_rgb or cuda_ad_rgb "
                          "(RGB + AD JIT variants)")

@@ -93,9 +93,11 @@ def _check_manifest(p: Path, m: dict) -> None:
 
 
 def integrator_props(comp_dir, manifest: dict, variant: str = "sop",
-                     materials: dict | None = None, **extra) -> dict:
-    """Properties of the ``comgs_composite`` integrator for a composition folder."""
-    root = Path(comp_dir).resolve()
+                     materials: dict | None = None, relative: bool = False, **extra) -> dict:
+    """Properties of the ``comgs_composite`` integrator for a composition folder; the
+    folder's own files as absolute paths, or (``relative``) relative to it, as an XML file
+    inside it needs them to stay valid when the folder is moved or copied."""
+    root = Path("") if relative else Path(comp_dir).resolve()
     props = {"type": "comgs_composite", "variant": variant, "scene_shape": "scene",
              "colour_space": manifest["scene"].get("colour_space", "srgb")}
     if manifest["scene"].get("sky"):                 # step 1's learned sky (--background env)
@@ -125,8 +127,11 @@ def shape_dicts(manifest: dict) -> dict:
 
 
 def write_xml(path, comp_dir, manifest: dict, variant: str = "sop") -> Path:
-    """``composition.xml``: the composition as a Mitsuba scene (one example sensor)."""
-    props = integrator_props(comp_dir, manifest, variant)
+    """``composition.xml``: the composition as a Mitsuba scene (one example sensor). Written
+    inside ``comp_dir``, it names the folder's files relative to itself (Mitsuba resolves
+    them against the XML's folder), so a copied or moved folder still renders its own."""
+    inside = Path(path).resolve().parent == Path(comp_dir).resolve()     # the usual case
+    props = integrator_props(comp_dir, manifest, variant, relative=inside)
     lines = ['<scene version="3.0.0">', '    <integrator type="comgs_composite">']
     for k, v in props.items():
         if k != "type":
@@ -252,12 +257,16 @@ def dataset_cameras(path, res=None, world_from_source=None) -> list[dict]:
 def camera_source(path, world_from_source=None, res=None) -> list[dict]:
     """``render-comp --cameras``: a NeRF-synthetic ``transforms*.json`` (:func:`read_cameras`,
     in the scene dataset's frame) or a dataset folder / ``poses_bounds.npy``
-    (:func:`dataset_cameras`)."""
+    (:func:`dataset_cameras`). A folder holding a ``transforms_test.json`` but no training
+    split (``make-dataset composition``'s ``comp/``) means that camera file."""
     p = Path(path)
     if p.suffix.lower() == ".json":
         return read_cameras(p, world_from_source, res)
     if not p.exists():
         raise FileNotFoundError(f"camera file or dataset folder not found: {p}")
+    if p.is_dir() and (p / "transforms_test.json").is_file() \
+            and not (p / "transforms_train.json").is_file():
+        return read_cameras(p / "transforms_test.json", world_from_source, res)
     return dataset_cameras(p, res, world_from_source)
 
 

@@ -19,6 +19,7 @@ term with ``indirect=false``, no shadow pass for ``noshadow``/``paste``.
 from __future__ import annotations
 
 import functools
+from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
@@ -42,6 +43,17 @@ from comgs_dr.surfels.shape import SurfelShapeBase
 
 VARIANTS = ("sop", "trace", "noshadow", "paste")
 MIN_WEIGHT = 1e-3             # pixels where a layer covers less than this are not shaded
+
+
+def _existing_file(key: str, path: str) -> str:
+    """``path`` resolved as Mitsuba resolves files (a relative path in an XML scene: against
+    the XML's folder, during loading), or FileNotFoundError naming the property. Checked
+    here because the files are read at the first render, where an error surfaces wrapped
+    in ``mi.render``'s custom-op RuntimeError."""
+    resolved = str(mi.file_resolver().resolve(path))
+    if not Path(resolved).is_file():
+        raise FileNotFoundError(f"comgs_composite: the '{key}' file {path!r} is not found")
+    return resolved
 
 
 class CompositeBase(AttachedRender):
@@ -111,19 +123,27 @@ class CompositeBase(AttachedRender):
     def __init__(self, props: mi.Properties):
         type(self).__bases__[0].__init__(self, props)
         self.scene_id = str(props.get("scene_shape", "scene"))
-        self.shadow_path = str(props["shadow_probes"]) if "shadow_probes" in props else None
+        keys = list(props.keys())
+        files = {k: _existing_file(k, str(props[k])) for k in keys
+                 if k in ("shadow_probes", "envmap") or k.startswith(("envmap_", "probes_"))
+                 or (k == "sky" and str(props[k]))}
+        self.shadow_path = files.get("shadow_probes")
         self.variant = str(props.get("variant", "sop" if self.shadow_path else "trace"))
         if self.variant not in VARIANTS:
             raise ValueError(f"comgs_composite: 'variant' must be one of {', '.join(VARIANTS)}, "
                              f"got {self.variant!r}")
         if self.variant == "sop" and not self.shadow_path:
             raise ValueError("comgs_composite: variant 'sop' needs the 'shadow_probes' file")
-        keys = list(props.keys())
-        self.env_files = {k[7:]: str(props[k]) for k in keys if k.startswith("envmap_")}
-        self.default_env = str(props["envmap"]) if "envmap" in props else None
-        self.probe_files = {k[7:]: str(props[k]) for k in keys if k.startswith("probes_")}
+        self.env_files = {k[7:]: files[k] for k in keys if k.startswith("envmap_")}
+        self.default_env = files.get("envmap")
+        self.probe_files = {k[7:]: files[k] for k in keys if k.startswith("probes_")}
         self.materials = {k[9:]: parse_material_spec(str(props[k]))
                           for k in keys if k.startswith("material_")}
+        if self.materials and self.variant == "paste":
+            raise ValueError(f"comgs_composite: variant 'paste' shows the objects' captured "
+                             f"radiance, so material overrides "
+                             f"({', '.join('material_' + n for n in self.materials)}) would be "
+                             f"ignored; use sop, trace or noshadow")
         sampling = str(props.get("sampling", "mis"))
         if sampling not in SAMPLINGS:
             raise ValueError(f"comgs_composite: 'sampling' must be one of {', '.join(SAMPLINGS)}, "
@@ -139,7 +159,7 @@ class CompositeBase(AttachedRender):
         if self.colour_space not in ("srgb", "linear"):
             raise ValueError(f"comgs_composite: colour_space must be srgb or linear, got "
                              f"{self.colour_space!r}")
-        self.sky_path = (str(props["sky"]) or None) if "sky" in props else None   # "": off
+        self.sky_path = files.get("sky")                                  # "": off
         self._state = None
         self._geo = {}
 

@@ -29,6 +29,8 @@ from comgs_dr.eval.metrics import psnr, ssim
 from comgs_dr.train.checkpoint import atomic_write_text
 
 VARIANTS = ("sop", "trace", "noshadow", "paste")
+MAX_SIDE = 16384        # px a side; and W·H ≤ (MAX_SIDE/2)²: the per-hit buffers (W·H·max_hits
+                        # entries) must stay below Dr.Jit's 2³² array limit
 log = logging.getLogger(__name__)
 
 
@@ -57,6 +59,11 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
     if len(sizes) > 2 or any(isinstance(v, bool) or not isinstance(v, (int, np.integer))
                              or v < 1 for v in sizes):
         raise ValueError(f"render-comp: res must be W or (W, H) with positive integers, got {res!r}")
+    if any(v > MAX_SIDE for v in sizes):
+        raise ValueError(f"render-comp: res {res!r} is beyond {MAX_SIDE} px a side")
+    if materials and variant == "paste":
+        raise ValueError("render-comp: material overrides do not apply to variant 'paste' (it "
+                         "shows the objects' captured radiance); use sop, trace or noshadow")
     if rays is not None and (isinstance(rays, bool) or int(rays) != rays or rays < 1):
         raise ValueError(f"render-comp: rays must be an integer >= 1, got {rays!r}")
     comp_dir = Path(comp_dir)
@@ -70,8 +77,18 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
                                     f"{len(cams)} frames in {gt_dir} (e.g. {missing[0]}.png)")
         for c in cams:
             gts[c["name"]] = read_image(Path(gt_dir) / f"{c['name']}.png")[..., :3]
+            gh, gw = gts[c["name"]].shape[:2]
             if res is None:
-                c["height"], c["width"] = gts[c["name"]].shape[:2]
+                c["height"], c["width"] = gh, gw
+            elif (c["width"], c["height"]) != (gw, gh):
+                raise ValueError(f"render-comp: res {c['width']}×{c['height']} is not the ground "
+                                 f"truth's size ({c['name']}.png is {gw}×{gh}): leave res out to "
+                                 f"render at the ground truth's size")
+    for c in cams:
+        if c["width"] is not None and c["width"] * c["height"] > MAX_SIDE * MAX_SIDE // 4:
+            raise ValueError(f"render-comp: frame {c['name']} is {c['width']}×{c['height']} px, "
+                             f"beyond the {MAX_SIDE // 2}² the hit buffer holds; give a "
+                             f"smaller res")
     extra = {"rays": int(rays), "shadow_rays": int(rays)} if rays else {}
     clip = comp_folder.clip_for(manifest, cams)        # scaled to the composition
     scene = load_comp_scene(comp_dir, variant, materials,

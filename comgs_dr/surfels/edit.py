@@ -50,6 +50,10 @@ def parse_material_spec(spec: str) -> MaterialEdit:
     """``"albedo=0.8,0.2,0.1,roughness=0.3,metallic=1"`` or ``"scale=1.5,roughness=0.1"``."""
     spec = spec.strip()
     pat = re.compile(r"(%s)=([^=]+?)(?=,(?:%s)=|$)" % ("|".join(_KEYS), "|".join(_KEYS)))
+    keys = [m.group(1) for m in pat.finditer(spec)]
+    twice = sorted({k for k in keys if keys.count(k) > 1})
+    if twice:
+        raise ValueError(f"--material {spec!r}: {', '.join(twice)} given more than once")
     found = {m.group(1): m.group(2) for m in pat.finditer(spec)}
     rebuilt = ",".join(f"{k}={v}" for k, v in ((m.group(1), m.group(2)) for m in pat.finditer(spec)))
     if not found or rebuilt.replace(" ", "") != spec.replace(" ", ""):
