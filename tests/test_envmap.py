@@ -108,6 +108,19 @@ def test_bad_files_and_values(tmp_path):
             em.read_envmap_file(tmp_path / name)
     mi.Bitmap(np.full((8, 16, 3), 2.5, np.float32)).write(str(tmp_path / "float.pfm"))
     assert em.read_envmap_file(tmp_path / "float.pfm")[0].max() == 2.5    # float formats read
+    # negatives: compression noise near black is clamped quietly (an info line); deeper
+    # ones warn
+    import warnings
+    noisy = np.ones((8, 16, 3), np.float32)
+    noisy[1, 1, 0] = -1e-3
+    mi.Bitmap(noisy).write(str(tmp_path / "noisy.exr"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert em.read_envmap_file(tmp_path / "noisy.exr")[0].min() == 0.0
+    noisy[1, 1, 0] = -0.5
+    mi.Bitmap(noisy).write(str(tmp_path / "damaged.exr"))
+    with pytest.warns(UserWarning, match="1 negative values .most negative -0.5. clamped to 0"):
+        assert em.read_envmap_file(tmp_path / "damaged.exr")[0].min() == 0.0
     with pytest.raises(ValueError, match="non-negative"):
         em.OctEnvmap(-np.ones((4, 4, 3)))
     with pytest.raises(ValueError, match=r"\[R, R, 3\]"):

@@ -230,6 +230,28 @@ def test_gradients_materials_env_and_atlas(rng):
             (key, fd, ad)
 
 
+def test_roughness_at_the_shading_floor_keeps_its_gradient(rng):
+    """Step 2 clamps roughness to ``min_roughness`` after each step; a point at the floor
+    still gets the one-sided derivative upward (a ``dr.maximum`` floor gave it 0)."""
+    env = OctEnvmap(rng.uniform(0.2, 2.0, (4, 4, 3)))
+    cfg = ShadingConfig(rays=64, sampling="uniform", min_roughness=0.04)
+    wts = to_jit(mi.Color3f, rng.uniform(0.5, 1.5, (3, 8)).astype(np.float32))
+
+    def loss(r0, grad=False):
+        pts = _points(8, wo=(0.3, 0.2, 1.0), metal=1.0, rough=r0)
+        if grad:
+            dr.enable_grad(pts.roughness)
+        val = dr.sum(dr.sum(shade(pts, env, NoVisibility(), cfg, seed=3) * wts))
+        if grad:
+            dr.backward(val)
+            return float(dr.sum(dr.grad(pts.roughness))[0])
+        return float(np.asarray(val).ravel()[0])
+    h = 1e-3
+    fd = (loss(0.04 + h) - loss(0.04)) / h
+    g = loss(0.04, grad=True)
+    assert abs(fd) > 1e-2 and g == pytest.approx(fd, rel=0.05), (g, fd)
+
+
 def test_cached_blend_matches_rendered_material_buffers(rng):
     """Fast path (cached hit weights + gathers) vs the reference mi.render G-buffer."""
     from conftest import random_surfels

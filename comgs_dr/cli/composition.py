@@ -75,6 +75,8 @@ def _cmd_compose(args) -> int:
         objects[name] = run
     cfg = COMPOSE_PRESETS[args.preset]
     if args.shadow_probes is not None:
+        if args.shadow_probes < 1:
+            raise ValueError(f"--shadow-probes must be ≥ 1, got {args.shadow_probes}")
         cfg = dataclasses.replace(cfg, shadow=dataclasses.replace(cfg.shadow,
                                                                   count=args.shadow_probes))
     estimator = None
@@ -91,6 +93,10 @@ def _cmd_compose(args) -> int:
                               light_head=args.light_head or "default")
         ecfg.validate()
         check_model_files(ecfg)
+        if args.weights is not None and not Path(args.weights).is_file():
+            raise FileNotFoundError(f"--weights: completion weights not found: {args.weights} "
+                                    f"(or estimate the map with `comgs estimate-light "
+                                    f"--backend push_pull` and give it as --env)")
         backend = (backends.default_backend() if args.weights is None else
                    backends.net_sh_blend(backends.load_network_backend(args.weights)))
 
@@ -143,7 +149,7 @@ def _add_render_comp(sub) -> None:
                    help="override an object's material (repeatable; not with --variant "
                         "paste): albedo=R,G,B (linear, in [0, 1]) or scale=S[,S,S] "
                         "(multiplies the albedo), roughness=X, metallic=Y")
-    p.add_argument("--res", type=int, nargs="+", metavar="W [H]",
+    p.add_argument("--res", type=int, nargs="+", metavar=("W", "H"),
                    help="image size (default: the ground truth's, else the camera file's w/h)")
     p.add_argument("--rays", type=int, metavar="N", help="S_r (default 256)")
     p.add_argument("--variant-mitsuba", dest="mi_variant", default="auto", metavar="MITSUBA_VARIANT",

@@ -15,6 +15,7 @@ v = acos(d_z)/π, v = 0 the top row.
 """
 from __future__ import annotations
 
+import logging
 import warnings
 
 from dataclasses import dataclass
@@ -34,6 +35,12 @@ from comgs_dr.core.equirect import (
     sample_equirect_np,
 )
 from comgs_dr.core.hostarray import to_jit
+
+log = logging.getLogger(__name__)
+# Negative values no deeper than this × the map's mean are compression noise (the shared
+# Blender maps, DWAB-compressed: down to 0.0144 × the mean in blender_night): clamped with
+# an info line, not a warning; deeper ones (a damaged or mis-encoded file) warn.
+NEGATIVE_NOISE = 0.05
 
 LOG_RANGE = (-16.0, 16.0)    # clamp of log radiance: exp(±16) ≈ 1e-7 .. 9e6
 
@@ -305,8 +312,12 @@ def _read_checked(p: Path) -> tuple[np.ndarray, dict]:
         raise ValueError(f"environment map {p} has {bad} non-finite (NaN/Inf) values")
     neg = int(np.count_nonzero(rgb < 0))
     if neg:
-        warnings.warn(f"environment map {p}: {neg} negative values (most negative "
-                      f"{float(rgb.min()):.3g}) clamped to 0", stacklevel=3)
+        msg = (f"environment map {p}: {neg} negative values (most negative "
+               f"{float(rgb.min()):.3g}) clamped to 0")
+        if -float(rgb.min()) <= NEGATIVE_NOISE * float(np.mean(np.maximum(rgb, 0.0))):
+            log.info(msg)           # lossy EXR compression (DWAB): noise around black
+        else:
+            warnings.warn(msg, stacklevel=3)
         rgb = np.maximum(rgb, 0.0)
     return rgb, attrs
 

@@ -25,6 +25,7 @@ from comgs_dr.core.octahedral import expand_mode
 from comgs_dr.shading.shade import ShadingConfig, ShadingPoints, shade
 from comgs_dr.surfels import composite
 from comgs_dr.surfels.composite import trace_composite
+from comgs_dr.surfels.kernel import clamp_closed
 
 
 class DeferredPbr:
@@ -147,8 +148,9 @@ class DeferredPbr:
         r = blend(mi.Float, mats["roughness"])
         m = blend(mi.Float, mats["metallic"])
         pts = ShadingPoints(position=geo["x"], normal=geo["n"], wo=geo["wo"],
-                            albedo=dr.clip(a, 0.0, 1.0), roughness=dr.clip(r, 0.0, 1.0),
-                            metallic=dr.clip(m, 0.0, 1.0))
+                            albedo=clamp_closed(a, 0.0, 1.0),
+                            roughness=clamp_closed(r, 0.0, 1.0),
+                            metallic=clamp_closed(m, 0.0, 1.0))
         return pts, geo
 
     def render(self, sensor: int, materials: dict | None = None, seed: int = 0,

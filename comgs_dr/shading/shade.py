@@ -174,8 +174,8 @@ def shade(pts: ShadingPoints, env, visibility, cfg: ShadingConfig, seed: int = 0
     a = dr.gather(mi.Color3f, pts.albedo, pid, mode=L_)
     r = dr.gather(mi.Float, pts.roughness, pid, mode=L_)
     m = dr.gather(mi.Float, pts.metallic, pid, mode=L_)
-    if cfg.min_roughness > 0:
-        r = dr.maximum(r, cfg.min_roughness)
+    if cfg.min_roughness > 0:     # closed: a roughness at the floor keeps its gradient
+        r = dr.select(r >= cfg.min_roughness, r, cfg.min_roughness)
     n = dr.gather(mi.Vector3f, dr.detach(pts.normal), pid)
     wo = dr.gather(mi.Vector3f, dr.detach(pts.wo), pid)
     with dr.suspend_grad():

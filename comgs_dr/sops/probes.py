@@ -114,6 +114,10 @@ class ProbeSet:
                            radius=float(radius), texture=tex if tex.size else None,
                            meta=meta)
         except (ValueError, TypeError) as e:
+            if "pickle" in str(e):          # numpy's hint to load it unsafely is not repeated
+                raise ValueError(f"bad probe file {p}: it holds pickled Python objects, not a "
+                                 f"probe file written by comgs_dr (not loaded: unpickling can "
+                                 f"run code)") from None
             raise ValueError(f"bad probe file {p}: {e}") from None
         except Exception as e:  # noqa: BLE001 - zip/npy decoding raises many types on damage
             raise ValueError(f"cannot read probe file {p}: {type(e).__name__}: {e}") from None

@@ -140,9 +140,27 @@ def compose(scene_run, objects: dict, placement, out, env=None, estimator=None,
     {name: Similarity}; ``env``: one map for all objects (equirect Z-up or octahedral
     EXR) — or ``estimator``: callable(world position [3], object name) -> equirect
     radiance [H, W, 3] (the name lets it keep its own record of each estimate).
+    A folder this call created is removed again when it fails before writing a file.
     """
-    t_all = time.perf_counter()
     out = Path(out)
+    created = not out.exists()
+    try:
+        return _compose(scene_run, objects, placement, out, env, estimator, cfg, progress)
+    except BaseException:
+        if created and out.is_dir():
+            for d in sorted(out.rglob("*"), reverse=True):       # empty sub-folders first
+                if d.is_dir() and not any(d.iterdir()):
+                    d.rmdir()
+            if not any(out.iterdir()):
+                out.rmdir()
+        raise
+
+
+MIN_RELATIVE_SIZE = 1e-4    # a placed object smaller than this × the scene: a wrong scale
+
+
+def _compose(scene_run, objects, placement, out: Path, env, estimator, cfg, progress) -> dict:
+    t_all = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     timings = {}
     scene_run = Path(scene_run)
@@ -176,6 +194,13 @@ def compose(scene_run, objects: dict, placement, out, env=None, estimator=None,
         placed[n] = transform_surfels(load_ply(str(files[n]["ply"])), sims[n])
         bounds[n] = object_bounds(placed[n])
     centres = {n: (bounds[n][0] + bounds[n][1]) / 2 for n in objects}
+    scene_size = float(np.linalg.norm(np.subtract(*object_bounds(scene_params)[::-1])))
+    for n in objects:
+        size = float(np.linalg.norm(bounds[n][1] - bounds[n][0]))
+        if not size > MIN_RELATIVE_SIZE * scene_size:
+            raise ValueError(f"compose: object {n!r} placed at scale {sims[n].scale:.3g} is "
+                             f"{size:.3g} units across, {size / scene_size:.1e} of the scene's "
+                             f"{scene_size:.3g}: check its placement's scale")
     timings["load"] = time.perf_counter() - t
 
     light = _lighting(list(objects), centres, env, estimator, cfg.env_res, out, timings)

@@ -25,6 +25,7 @@ from comgs_dr.core.hostarray import to_jit
 from comgs_dr.core.octahedral import expand_mode
 from comgs_dr.surfels import composite
 from comgs_dr.surfels.composite import trace_composite
+from comgs_dr.surfels.kernel import clamp_closed
 
 
 @dataclass
@@ -143,6 +144,6 @@ def group_materials(buf: GroupBuffers, pix, slot: int, params) -> dict:
     def blend(cls, src):
         v = dr.gather(cls, src, ids, mine, mode=expand_mode(src))
         return dr.block_sum(w * v, K) * inv
-    return {"albedo": dr.clip(blend(mi.Color3f, params.albedo), 0.0, 1.0),
-            "roughness": dr.clip(blend(mi.Float, params.roughness), 0.0, 1.0),
-            "metallic": dr.clip(blend(mi.Float, params.metallic), 0.0, 1.0)}
+    return {"albedo": clamp_closed(blend(mi.Color3f, params.albedo), 0.0, 1.0),
+            "roughness": clamp_closed(blend(mi.Float, params.roughness), 0.0, 1.0),
+            "metallic": clamp_closed(blend(mi.Float, params.metallic), 0.0, 1.0)}

@@ -409,6 +409,14 @@ def test_probe_file_damage():
     _probes_test(300)()
 
 
+def test_probe_file_of_pickled_objects_is_refused_without_unsafe_advice(tmp_path):
+    from comgs_dr.sops.probes import ProbeSet
+    np.savez(tmp_path / "p.npz", meta=np.array([{"a": 1}], dtype=object), texture=np.zeros(1))
+    with pytest.raises(ValueError, match="pickled Python objects, not a probe file") as ei:
+        ProbeSet.load(tmp_path / "p.npz")
+    assert "allow_pickle" not in str(ei.value)
+
+
 @slow
 def test_probe_file_damage_many():
     _probes_test(2000)()
