@@ -43,7 +43,9 @@ def _add_compose(sub) -> None:
     p.add_argument("--env", metavar="MAP", help="map lighting every object (default: estimate)")
     p.add_argument("--out", required=True, metavar="COMP_DIR")
     p.add_argument("--preset", choices=sorted(COMPOSE_PRESETS), default="default",
-                   help="default: 10k shadow probes per object (paper); fast: 2k")
+                   help="default: 10k shadow probes per object (paper), 32² texels; fast: "
+                        "2k at 16² (20x fewer occlusion rays; shadows softer and "
+                        "weaker, most under a low sun)")
     p.add_argument("--shadow-probes", type=int, metavar="N", help="shadow probes per object")
     p.add_argument("--label", choices=("auto", "unknown", "indoor", "outdoor"), default=None,
                    help="scene label for the lighting estimation (default auto: classified "
