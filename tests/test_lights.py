@@ -337,6 +337,37 @@ def test_train_light_head_tiny_run(tmp_path):
     torch.testing.assert_close(ens.heads[0](x), head(x))                 # member 0 = seed 0
 
 
+def test_scene_probe_is_the_maps_light_inside_the_composition_scene(tmp_path):
+    """``scene_probe``: the light at a placement in the procedural scene; above the horizon
+    mostly the (turned) map, below it the scene's ground instead of the map's."""
+    from comgs_dr.data.composition_dataset import write_textures
+    from comgs_dr.stages.train_light_head import scene_probe
+    img, _ = _sun_map()
+    img = img.astype(np.float32)
+    img[32:] = 5.0                                   # a bright "ground" in the map itself
+    pr = scene_probe(img, np.random.default_rng(0), write_textures(tmp_path / "tex"),
+                     height=32, spp_side=2)
+    assert pr.shape == (32, 64, 3) and np.isfinite(pr).all() and pr.min() >= 0
+    low = pr[28:]                                    # the scene's textured, sunlit ground
+    assert abs(low.mean() - 5.0) > 1.0 and low.std() > 0.05 * low.mean()
+    assert pr.max() > 10.0                           # the sun is still in view above
+
+
+def test_train_light_head_with_scene_probes(tmp_path):
+    from comgs_dr.lighting.envmap import write_exr
+    from comgs_dr.stages.train_light_head import TrainLightHeadConfig, build_data
+    maps = tmp_path / "maps"
+    write_exr(maps / "yard.exr", _sun_map(sun=(0.6, 0.2, 0.35))[0].astype(np.float32),
+              "equirect")
+    base = dict(out=tmp_path / "head.pt", maps_dir=maps, held_out=(), heights=(64,),
+                draws_real=2, n_sky=1, draws_sky=1, n_rooms=1, draws_room=1, n_masks=2)
+    plain = build_data(TrainLightHeadConfig(data_dir=tmp_path / "a", **base), progress=False)
+    more = build_data(TrainLightHeadConfig(data_dir=tmp_path / "b", scene_probes=1,
+                                           draws_scene=3, **base), progress=False)
+    # the scene probe's draws are the map's (group 0, left out with it in the CV)
+    assert (more["groups"] == 0).sum() > (plain["groups"] == 0).sum()
+
+
 def test_shipped_head_recovers_unseen_suns():
     """The shipped head on Mitsuba sunsky skies it never saw (seeds unused in training), fully
     observed at 64x128: the sun region's predicted power against the true one, and against

@@ -72,6 +72,13 @@ class TrainLightHeadConfig:
     # CV stays single-head). Seeds 0, 1, 2 alone gave a held-out light angle of 31.7°, 50.6°,
     # 41.7°, their 5-seed ensemble 32.2° (README); the shipped head is one head.
     ensemble: int = 1
+    # Per real map, panoramas of the map's light *inside a scene*: path-traced at a random
+    # placement in `make-dataset composition`'s procedural scene (ground, wall, box) under
+    # the map turned by a random azimuth (``scene_probe``), ``draws_scene`` draws each at
+    # every height. The bare maps never show the ground and walls a placement sees; the
+    # head misjudged lamps there (benchmarks/light_head_in_scene.py). 0: off.
+    scene_probes: int = 0
+    draws_scene: int = 10
     n_masks: int = 120
     aug_ev: float = 1.5
     wb_jitter: float = 0.1
@@ -111,6 +118,26 @@ def _draws(rng, hdr, masks, n, cfg, label, group, feats, targets, groups):
             seen = max(float(r.seen_power @ LUMA), 1e-12)
             targets.append(np.log(max(true / seen, 1.0)))
             groups.append(group)
+
+
+def scene_probe(env, rng, textures: dict, height: int = 256, spp_side: int = 4) -> np.ndarray:
+    """[height, 2·height, 3] light arriving at a random placement (within 0.3 of the centre,
+    0.15–0.6 above the ground) of the composition scene (``composition_dataset.scene_layout``
+    with a random wall azimuth and clearance) lit by the equirect map ``env`` [H, W, 3]
+    turned by a random azimuth; ``textures``: ``composition_dataset.write_textures``."""
+    from types import SimpleNamespace
+
+    import mitsuba as mi
+
+    from comgs_dr.data import composition_dataset as comp
+    from comgs_dr.data.placement_probe import render_probe
+    env = np.roll(np.asarray(env, np.float32), int(rng.integers(env.shape[1])), axis=1)
+    layout = comp.scene_layout(float(rng.uniform(0.0, 360.0)), float(rng.uniform(0.6, 1.2)))
+    cfg = SimpleNamespace(max_depth=comp.CompositionDatasetConfig.max_depth,
+                          scene_envmap_scale=1.0, fov_deg=40.0, resolution=8)
+    scene = mi.load_dict(comp.scene_dict(cfg, mi.Bitmap(env), textures, layout))
+    pos = np.array([*rng.uniform(-0.3, 0.3, 2), rng.uniform(0.15, 0.6)])
+    return render_probe(scene, pos, height, spp_side, seed=int(rng.integers(1000)))
 
 
 def blur_ldr(ldr, alpha, sigma_px: float) -> np.ndarray:
@@ -158,8 +185,20 @@ def build_data(cfg: TrainLightHeadConfig, progress: bool = True) -> dict:
     rooms = [P.room_panorama(rng, rh, 2 * rh, spp=16, seed=cfg.seed * 7919 + i,
                              bulbs=cfg.room_bulbs)
              for i in tqdm(range(cfg.n_rooms), desc="rooms", disable=not progress)]
+    probes = {}                     # {map index: [scene probes at 256 rows]}
+    if cfg.scene_probes > 0:
+        from comgs_dr.data.composition_dataset import write_textures
+        textures = write_textures(Path(cfg.data_dir) / "scene_textures")
+        prng = np.random.default_rng(cfg.seed + 31)
+        for i, p in enumerate(tqdm(files, desc="scene probes", disable=not progress)):
+            env = P.load_map(p, 256, 512)
+            probes[i] = [scene_probe(env, prng, textures) for _ in range(cfg.scene_probes)]
     feats, targets, groups = [], [], []
     for h in cfg.heights:
+        for i, ps in probes.items():
+            for pr in ps:
+                _draws(rng, _resize_rows(pr, h).astype(np.float64), masks, cfg.draws_scene, cfg,
+                       C.LABELS[P.label_of(files[i].stem)], i, feats, targets, groups)
         for i, p in enumerate(tqdm(files, desc=f"maps {h}px", disable=not progress)):
             _draws(rng, P.load_map(p, h, 2 * h).astype(np.float64), masks, cfg.draws_real,
                    cfg, C.LABELS[P.label_of(p.stem)], i, feats, targets, groups)
@@ -282,6 +321,10 @@ def add_arguments(ap) -> None:
                     "white core (as inference sees them; the shipped head saw every clipped one)")
     ap.add_argument("--ensemble", type=int, default=d.ensemble,
                     help="save the mean of this many heads fitted with consecutive seeds")
+    ap.add_argument("--scene-probes", type=int, default=d.scene_probes,
+                    help="per real map, path-traced panoramas of it inside the composition "
+                         "scene (default 0: none)")
+    ap.add_argument("--draws-scene", type=int, default=d.draws_scene)
     ap.add_argument("--masks", type=int, default=d.n_masks)
     ap.add_argument("--steps", type=int, default=d.steps)
     ap.add_argument("--blur-frac", type=float, default=d.blur_frac,
@@ -305,7 +348,8 @@ def run_from_args(args) -> int:
                                weight_decay=args.weight_decay, cv=not args.no_cv,
                                threads=args.threads, blur_frac=args.blur_frac,
                                room_bulbs=args.bulbs, room_height=args.room_height,
-                               white_core=args.white_core, ensemble=args.ensemble)
+                               white_core=args.white_core, ensemble=args.ensemble,
+                               scene_probes=args.scene_probes, draws_scene=args.draws_scene)
     info = train(cfg, progress=not args.quiet, command=" ".join(sys.argv))
     print(f"saved {cfg.out}: {info['regions']} regions, training MAE of log gain "
           f"{info['history'][-1]['train_mae_log']}")
