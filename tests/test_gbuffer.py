@@ -140,3 +140,21 @@ def test_surfel_shapes_come_sorted_by_id(rng):
     for _ in range(4):
         ids = [s.id() for s in common.surfel_shapes(mi.load_dict(d), "test")]
         assert ids == ["alpha", "beta", "mid", "zeta"]
+
+
+def test_top_down_camera_and_non_finite_sensor():
+    """``perspective`` looking along its up vector (a top-down view) gets another up, not a
+    NaN matrix; a sensor whose to_world is not finite is a clear error in ``camera_rays``."""
+    from comgs_dr.core.cameras import camera_rays
+    s = cameras.perspective((0, 0, 3), (0, 0, 0), res=8)
+    m = np.asarray(s["to_world"].matrix, np.float64)
+    assert np.isfinite(m).all()
+    np.testing.assert_allclose(m[:3, 2], [0, 0, -1], atol=1e-6)          # looks down
+    dirs, _ = camera_rays(s)
+    assert np.isfinite(np.asarray(dirs)).all()
+    bad = cameras.perspective((0, -3, 0), res=8)
+    bad["to_world"] = mi.ScalarTransform4f(np.full((4, 4), np.nan).tolist())
+    with pytest.raises(ValueError, match="to_world is not finite"):
+        camera_rays(bad)
+    with pytest.raises(ValueError, match="finite and distinct"):
+        cameras.perspective((1, 2, 3), (1, 2, 3))

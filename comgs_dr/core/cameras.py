@@ -11,10 +11,21 @@ def perspective(origin, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0), fov: float =
     """A ``perspective`` sensor dict looking from ``origin`` at ``target`` (Z-up, box filter).
 
     ``res`` is an int (square) or (width, height); ``fov`` is the horizontal field of view.
+    Looking along ``up`` (a top-down view), the up vector becomes +Y (a look-at with the
+    view direction parallel to up has no defined roll: its matrix was NaN and every render
+    through it NaN). ValueError when ``origin`` equals ``target`` or either is not finite.
     """
     w, h = (res, res) if isinstance(res, int) else res
     if w < 1 or h < 1:
         raise ValueError(f"perspective: resolution must be positive, got {w}x{h}")
+    o, t, u = (np.asarray(v, np.float64).reshape(3) for v in (origin, target, up))
+    d = t - o
+    if not (np.isfinite(o).all() and np.isfinite(t).all()) or not np.linalg.norm(d) > 0:
+        raise ValueError(f"perspective: origin {o.tolist()} and target {t.tolist()} must be "
+                         f"finite and distinct")
+    if np.linalg.norm(np.cross(d / np.linalg.norm(d), u / max(np.linalg.norm(u), 1e-300))) < 1e-6:
+        u = np.array([0.0, 1.0, 0.0]) if abs(d[1]) < 0.5 * np.linalg.norm(d) else np.array([1.0, 0.0, 0.0])
+    origin, target, up = o, t, u
     return {
         "type": "perspective", "fov": float(fov), "fov_axis": "x",
         "to_world": mi.ScalarTransform4f().look_at(origin=list(map(float, origin)),
@@ -61,6 +72,10 @@ def camera_rays(sensor_or_dict, width: int | None = None, height: int | None = N
     if not isinstance(sensor, mi.Sensor):
         raise ValueError(f"camera_rays: expected a Mitsuba sensor or sensor dict, "
                          f"got {type(sensor_or_dict).__name__}")
+    m = np.asarray(sensor.world_transform().matrix, np.float64).reshape(4, 4)
+    if not np.isfinite(m).all():
+        raise ValueError(f"camera_rays: the sensor's to_world is not finite (a look-at along "
+                         f"its up vector?): {np.round(m, 3).tolist()}")
     film = sensor.film()
     if width is None and height is None:
         (w, h), off = film.crop_size(), film.crop_offset()

@@ -106,13 +106,19 @@ class AttachedRender:
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         with dr.resume_grad():
             img = self.render_attached(scene, sensor, seed, spp)
-            dr.forward_to(img)
+            dr.forward_to(img, flags=_NO_GRAD_OK)
             return dr.grad(img)
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         with dr.resume_grad():
             img = self.render_attached(scene, sensor, seed, spp)
-            dr.backward_from(img * grad_in)
+            dr.backward_from(img * grad_in, flags=_NO_GRAD_OK)
+
+
+# A view that sees nothing the parameters change (an object out of frame, a camera looking
+# away) has a zero gradient, as for Mitsuba's own integrators; without the flag Dr.Jit
+# raises "does not depend on the input variable(s)" and a multi-view loop stops there.
+_NO_GRAD_OK = dr.ADFlag.Default | dr.ADFlag.AllowNoGrad
 
 
 def mitsuba_ad_base(name: str = "RBIntegrator"):

@@ -150,7 +150,7 @@ def write_xml(path, comp_dir, manifest: dict, variant: str = "sop") -> Path:
     eye = c + np.array([3.0, -3.0, 2.0]) * max(
         [np.linalg.norm(np.subtract(o["bounds"][1], o["bounds"][0])) for o in
          manifest["objects"].values()] or [1.0])
-    lines += ['    <sensor type="perspective">', '        <float name="fov" value="40"/>',
+    lines += ['    <sensor type="perspective" id="sensor">', '        <float name="fov" value="40"/>',
               '        <transform name="to_world"><lookat origin="{}" target="{}" up="0, 0, 1"/>'
               '</transform>'.format(", ".join(f"{v:.6g}" for v in eye),
                                     ", ".join(f"{v:.6g}" for v in c)),

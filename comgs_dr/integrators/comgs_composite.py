@@ -29,6 +29,7 @@ from comgs_dr.core import colorspace
 from comgs_dr.core.cameras import camera_rays
 from comgs_dr.core.variant import AttachedRender, mitsuba_ad_base, variant_class
 from comgs_dr.emitters.octenvmap import emitter_class, is_octenvmap
+from comgs_dr.shading.deferred import rgba_tensor
 from comgs_dr.shading.shade import SAMPLINGS, ShadingConfig, ShadingPoints, shade
 from comgs_dr.shading.shadow import shadow_ratio
 from comgs_dr.shading.visibility import NoVisibility, SopVisibility, TraceVisibility
@@ -331,7 +332,7 @@ class CompositeBase(AttachedRender):
             img = img + (1.0 - cover) * self._linear(dr.clip(sky, 0.0, 1.0), mi.Float(1.0))
         if sensor.film().base_channels_count() == 4:
             cover = dr.clip(sum(buf.weight[1:], Ws), 0.0, 1.0)
-            return mi.TensorXf(dr.ravel(mi.Vector4f(img.x, img.y, img.z, cover)), shape=(h, w, 4))
+            return rgba_tensor(img, cover, h, w)
         return mi.TensorXf(dr.ravel(img), shape=(h, w, 3))
 
     def to_string(self):

@@ -186,6 +186,17 @@ class DeferredPbr:
         if background is not None:
             img = img + (1.0 - cover) * background
         if alpha:
-            flat = dr.ravel(mi.Vector4f(img.x, img.y, img.z, cover))
-            return mi.TensorXf(flat, shape=(h, w, 4))
+            return rgba_tensor(img, cover, h, w)
         return mi.TensorXf(dr.ravel(img), shape=(h, w, 3))
+
+
+def rgba_tensor(rgb, alpha, h: int, w: int) -> mi.TensorXf:
+    """[h, w, 4] tensor of ``rgb`` (``mi.Color3f`` [h*w]) and ``alpha`` ([h*w]). The channels
+    are scattered into the interleaved buffer: ``dr.ravel`` of a ``Vector4f`` whose lanes come
+    from scatters aborted forward-mode AD (``jit_assemble(): dirty variable encountered``,
+    the process killed; Dr.Jit 1.5)."""
+    flat = dr.zeros(mi.Float, 4 * h * w)
+    i4 = dr.arange(mi.UInt32, h * w) * 4
+    for k, ch in enumerate((rgb.x, rgb.y, rgb.z, alpha)):
+        dr.scatter(flat, ch, i4 + k)
+    return mi.TensorXf(flat, shape=(h, w, 4))
