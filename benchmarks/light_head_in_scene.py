@@ -51,6 +51,7 @@ def main(argv=None) -> int:
                     "cached map found among the shared maps)")
     ap.add_argument("--exposure", type=float, default=1.0, help="recon_light_e2e's --exposure")
     ap.add_argument("--regions", type=int, default=3)
+    ap.add_argument("--light-head", default=None, help="light-head weights (default: shipped)")
     a = ap.parse_args(argv)
 
     import comgs_dr
@@ -67,7 +68,7 @@ def main(argv=None) -> int:
         if (cache / p.stem / "probe_256.npy").is_file()]
     if not maps:
         raise SystemExit(f"no cached probe_256.npy under {cache} for the given maps")
-    head = L.load_head()
+    head = L.load_head() if a.light_head is None else L.load_head(a.light_head)
 
     def cell(rows):
         return ", ".join(f"{g:.0f} ({t:.0f})" for _, g, t in rows) or "no clipped region"
