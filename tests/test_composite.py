@@ -400,6 +400,11 @@ def test_compose_cache_recomputes_only_what_a_moved_object_touches(tmp_path, cap
     with pytest.raises(Exception) as ei:
         mi.load_file(str(copy / "composition.xml"))
     assert "the 'probes_b' file 'probes/b.npz' is not found" in error_chain_text(ei.value)
+    from comgs_dr.cli import main
+    capsys.readouterr()
+    assert main(["render-comp", str(copy), "--cameras", str(tmp_path / "data" / "transforms_test.json"),
+                 "--res", "8", "--quiet"]) == 2                  # exit 2, not a traceback
+    assert "the composition's probes_b file is missing" in capsys.readouterr().err
     shutil.copy(out / "probes" / "b.npz", copy / "probes" / "b.npz")
     np.testing.assert_array_equal(np.asarray(mi.render(mi.load_file(str(copy / "composition.xml")), spp=16, seed=1)),
                                   np.asarray(mi.render(xml, spp=16, seed=1)))
@@ -468,6 +473,7 @@ def test_compose_cache_recomputes_only_what_a_moved_object_touches(tmp_path, cap
     with pytest.raises(ValueError, match="'a'.*scale|scale.*'a'"):
         compose(run, objs, tmp_path / "bad.json", out, env=tmp_path / "env.exr", cfg=cfg,
                 progress=False)
+    assert (out / "composition.json").is_file()      # a folder that existed stays whole
     # a failing compose leaves no empty folder behind; a tiny scale is named as such
     with pytest.raises(FileNotFoundError):
         compose(run, objs, tmp_path / "nowhere.json", tmp_path / "fresh", env=tmp_path / "env.exr",

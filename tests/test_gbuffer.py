@@ -150,6 +150,9 @@ def test_top_down_camera_and_non_finite_sensor():
     m = np.asarray(s["to_world"].matrix, np.float64)
     assert np.isfinite(m).all()
     np.testing.assert_allclose(m[:3, 2], [0, 0, -1], atol=1e-6)          # looks down
+    np.testing.assert_allclose(m[:3, 1], [0, 1, 0], atol=1e-6)           # image up = +Y
+    with pytest.raises(ValueError, match="up .* must be finite and non-zero"):
+        cameras.perspective((0, -3, 0), up=(0, 0, 0))
     dirs, _ = camera_rays(s)
     assert np.isfinite(np.asarray(dirs)).all()
     bad = cameras.perspective((0, -3, 0), res=8)

@@ -246,6 +246,8 @@ def test_roughness_at_the_shading_floor_keeps_its_gradient(rng):
             dr.backward(val)
             return float(dr.sum(dr.grad(pts.roughness))[0])
         return float(np.asarray(val).ravel()[0])
+    nan = _points(2, rough=float("nan"))
+    assert np.isnan(np.asarray(shade(nan, env, NoVisibility(), cfg, seed=3))).all()  # not 0.04
     h = 1e-3
     fd = (loss(0.04 + h) - loss(0.04)) / h
     g = loss(0.04, grad=True)

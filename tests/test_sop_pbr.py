@@ -143,6 +143,15 @@ def test_a_view_that_sees_nothing_has_zero_gradient(probe_file):
     img = mi.render(scene, params, seed=1, seed_grad=2)
     dr.backward(dr.sum(img, axis=None))
     assert np.all(np.asarray(dr.grad(params["obj.albedo"])) == 0)
+    # where the object is in view, a parameter sop_pbr does not differentiate (geometry)
+    # still raises Dr.Jit's error instead of a silent zero
+    scene = _scene(probe_file)
+    params = mi.traverse(scene)
+    dr.enable_grad(params["obj.means"])
+    params.update()
+    img = mi.render(scene, params, seed=1, seed_grad=2)
+    with pytest.raises(Exception, match="does not depend on the input"):
+        dr.backward(dr.sum(img, axis=None))
 
 
 def test_geometry_cache_survives_material_updates_only(probe_file):

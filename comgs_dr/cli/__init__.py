@@ -90,5 +90,5 @@ def input_cause(exc: BaseException) -> BaseException | None:
         seen.add(id(exc))
         if isinstance(exc, (FileNotFoundError, ValueError, ImportError)):
             return exc
-        exc = exc.__cause__ or exc.__context__
+        exc = exc.__cause__ or (None if exc.__suppress_context__ else exc.__context__)
     return None

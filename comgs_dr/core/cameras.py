@@ -11,9 +11,10 @@ def perspective(origin, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0), fov: float =
     """A ``perspective`` sensor dict looking from ``origin`` at ``target`` (Z-up, box filter).
 
     ``res`` is an int (square) or (width, height); ``fov`` is the horizontal field of view.
-    Looking along ``up`` (a top-down view), the up vector becomes +Y (a look-at with the
-    view direction parallel to up has no defined roll: its matrix was NaN and every render
-    through it NaN). ValueError when ``origin`` equals ``target`` or either is not finite.
+    Looking along ``up`` (a top-down view), the up vector becomes +Y, or +X when the view
+    runs along Y (a look-at with the view direction parallel to up has no defined roll: its
+    matrix was NaN and every render through it NaN). ValueError when ``origin`` equals
+    ``target``, or any of the three is not finite, or ``up`` is zero.
     """
     w, h = (res, res) if isinstance(res, int) else res
     if w < 1 or h < 1:
@@ -23,7 +24,9 @@ def perspective(origin, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0), fov: float =
     if not (np.isfinite(o).all() and np.isfinite(t).all()) or not np.linalg.norm(d) > 0:
         raise ValueError(f"perspective: origin {o.tolist()} and target {t.tolist()} must be "
                          f"finite and distinct")
-    if np.linalg.norm(np.cross(d / np.linalg.norm(d), u / max(np.linalg.norm(u), 1e-300))) < 1e-6:
+    if not (np.isfinite(u).all() and np.linalg.norm(u) > 0):
+        raise ValueError(f"perspective: up {u.tolist()} must be finite and non-zero")
+    if np.linalg.norm(np.cross(d / np.linalg.norm(d), u / np.linalg.norm(u))) < 1e-6:
         u = np.array([0.0, 1.0, 0.0]) if abs(d[1]) < 0.5 * np.linalg.norm(d) else np.array([1.0, 0.0, 0.0])
     origin, target, up = o, t, u
     return {

@@ -106,19 +106,23 @@ class AttachedRender:
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         with dr.resume_grad():
             img = self.render_attached(scene, sensor, seed, spp)
-            dr.forward_to(img, flags=_NO_GRAD_OK)
+            dr.forward_to(img, flags=self._grad_flags())
             return dr.grad(img)
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         with dr.resume_grad():
             img = self.render_attached(scene, sensor, seed, spp)
-            dr.backward_from(img * grad_in, flags=_NO_GRAD_OK)
+            dr.backward_from(img * grad_in, flags=self._grad_flags())
 
-
-# A view that sees nothing the parameters change (an object out of frame, a camera looking
-# away) has a zero gradient, as for Mitsuba's own integrators; without the flag Dr.Jit
-# raises "does not depend on the input variable(s)" and a multi-view loop stops there.
-_NO_GRAD_OK = dr.ADFlag.Default | dr.ADFlag.AllowNoGrad
+    def _grad_flags(self):
+        """A view in which ``render_attached`` saw nothing it differentiates (it sets
+        ``sees_nothing``: an object out of frame, a camera looking away) has a zero gradient,
+        as with Mitsuba's own integrators, instead of Dr.Jit's "does not depend on the input
+        variable(s)" stopping a multi-view loop. Elsewhere that error stays: it is what a
+        user optimising a parameter the integrator does not differentiate should see."""
+        if getattr(self, "sees_nothing", False):
+            return dr.ADFlag.Default | dr.ADFlag.AllowNoGrad
+        return dr.ADFlag.Default
 
 
 def mitsuba_ad_base(name: str = "RBIntegrator"):

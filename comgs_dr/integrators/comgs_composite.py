@@ -54,7 +54,7 @@ def _existing_file(key: str, path: str) -> str:
     resolved = str(mi.file_resolver().resolve(path))
     if not Path(resolved).is_file():
         raise FileNotFoundError(f"comgs_composite: the '{key}' file {path!r} is not found")
-    return resolved
+    return str(Path(resolved).resolve())
 
 
 class CompositeBase(AttachedRender):
@@ -316,11 +316,13 @@ class CompositeBase(AttachedRender):
         S = self._shadow(buf, st, int(seed))
         if S is not None:
             img = img * S
+        self.sees_nothing = True    # no object pixel: nothing here depends on materials
         for o in st["objects"]:
             Wg = buf.weight[o["group"]]
             pix = dr.compress(Wg > MIN_WEIGHT)
             if dr.width(pix) == 0:
                 continue            # outside the view or hidden: no shading pass
+            self.sees_nothing = False
             c = self._object_colour(buf, st, o, pix, int(seed) + 104729 * o["group"], cfg)
             layer = dr.zeros(mi.Color3f, h * w)
             dr.scatter(layer, dr.gather(mi.Float, Wg, pix) * c, pix)

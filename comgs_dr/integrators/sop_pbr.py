@@ -191,7 +191,8 @@ class SopPbrBase(AttachedRender):
             cfg = ShadingConfig(**{**cfg.__dict__, "rays": max(int(spp), 2)})
         vis = self._visibility(scene)
         pbr = self._deferred(scene, env, vis, cfg)
-        if dr.width(pbr.geometry(sensor)["pix"]) == 0:
+        self.sees_nothing = dr.width(pbr.geometry(sensor)["pix"]) == 0
+        if self.sees_nothing:
             col, geo = None, pbr.geometry(sensor)    # nothing covered (e.g. a grazing view)
         else:
             pts, geo = pbr.shading_points(sensor)

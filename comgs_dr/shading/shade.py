@@ -175,7 +175,7 @@ def shade(pts: ShadingPoints, env, visibility, cfg: ShadingConfig, seed: int = 0
     r = dr.gather(mi.Float, pts.roughness, pid, mode=L_)
     m = dr.gather(mi.Float, pts.metallic, pid, mode=L_)
     if cfg.min_roughness > 0:     # closed: a roughness at the floor keeps its gradient
-        r = dr.select(r >= cfg.min_roughness, r, cfg.min_roughness)
+        r = dr.select(r < cfg.min_roughness, cfg.min_roughness, r)     # NaN stays NaN
     n = dr.gather(mi.Vector3f, dr.detach(pts.normal), pid)
     wo = dr.gather(mi.Vector3f, dr.detach(pts.wo), pid)
     with dr.suspend_grad():

@@ -148,11 +148,14 @@ def compose(scene_run, objects: dict, placement, out, env=None, estimator=None,
         return _compose(scene_run, objects, placement, out, env, estimator, cfg, progress)
     except BaseException:
         if created and out.is_dir():
-            for d in sorted(out.rglob("*"), reverse=True):       # empty sub-folders first
-                if d.is_dir() and not any(d.iterdir()):
-                    d.rmdir()
-            if not any(out.iterdir()):
-                out.rmdir()
+            try:
+                for d in sorted(out.rglob("*"), reverse=True):   # empty sub-folders first
+                    if d.is_dir() and not any(d.iterdir()):
+                        d.rmdir()
+                if not any(out.iterdir()):
+                    out.rmdir()
+            except OSError:                 # the original error matters, not the cleanup's
+                pass
         raise
 
 

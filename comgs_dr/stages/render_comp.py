@@ -38,10 +38,12 @@ def load_comp_scene(comp_dir, variant: str = "sop", materials: dict | None = Non
                     sensors=(), **integrator_extra) -> mi.Scene:
     """The composition as a Mitsuba scene (``comgs_composite`` + surfels shapes)."""
     m = comp_folder.read_manifest(comp_dir)
-    d = {"type": "scene",
-         "integrator": comp_folder.integrator_props(comp_dir, m, variant, materials,
-                                                    **integrator_extra),
-         **comp_folder.shape_dicts(m)}
+    props = comp_folder.integrator_props(comp_dir, m, variant, materials, **integrator_extra)
+    for k, v in props.items():      # here: mi.load_dict hides a plugin's error in its text
+        if (k in ("shadow_probes", "sky") or k.startswith(("envmap_", "probes_"))) and v \
+                and not Path(v).is_file():
+            raise FileNotFoundError(f"{comp_dir}: the composition's {k} file is missing: {v}")
+    d = {"type": "scene", "integrator": props, **comp_folder.shape_dicts(m)}
     for i, s in enumerate(sensors):
         d[f"sensor_{i:03d}"] = s
     return mi.load_dict(d)

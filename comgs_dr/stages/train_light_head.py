@@ -121,8 +121,8 @@ def _draws(rng, hdr, masks, n, cfg, label, group, feats, targets, groups):
 
 
 def scene_probe(env, rng, textures: dict, height: int = 256, spp_side: int = 4) -> np.ndarray:
-    """[height, 2·height, 3] light arriving at a random placement (within 0.3 of the centre,
-    0.15–0.6 above the ground) of the composition scene (``composition_dataset.scene_layout``
+    """[height, 2·height, 3] light arriving at a random placement (x, y within ±0.3 of the
+    centre, 0.15–0.6 above the ground) of the composition scene (``composition_dataset.scene_layout``
     with a random wall azimuth and clearance) lit by the equirect map ``env`` [H, W, 3]
     turned by a random azimuth; ``textures``: ``composition_dataset.write_textures``."""
     from types import SimpleNamespace
@@ -186,6 +186,9 @@ def build_data(cfg: TrainLightHeadConfig, progress: bool = True) -> dict:
                              bulbs=cfg.room_bulbs)
              for i in tqdm(range(cfg.n_rooms), desc="rooms", disable=not progress)]
     probes = {}                     # {map index: [scene probes at 256 rows]}
+    if cfg.scene_probes > 0 and any(h > 256 and h % 256 for h in cfg.heights):
+        raise ValueError(f"--scene-probes: the probes are rendered at 256 rows, so --heights "
+                         f"must be ≤ 256 or multiples of it, got {list(cfg.heights)}")
     if cfg.scene_probes > 0:
         from comgs_dr.data.composition_dataset import write_textures
         textures = write_textures(Path(cfg.data_dir) / "scene_textures")
