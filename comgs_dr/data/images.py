@@ -20,11 +20,14 @@ IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 _HIGH_BIT = ("I;16", "I;16B", "I;16L", "I;16N", "I")
 
 
-def _open(path: Path):
+def _open(path: Path, pixels: bool = True):
+    """The PIL image of ``path``, decoded (``pixels``) or its header only (size, mode), or a
+    DatasetError naming the file."""
     try:
         with open(path, "rb") as f:     # closed even when decoding fails
             im = Image.open(f)
-            im.load()
+            if pixels:
+                im.load()
             return im
     except FileNotFoundError:
         raise DatasetError(f"{path}: image file not found") from None
@@ -34,14 +37,7 @@ def _open(path: Path):
 
 def image_size(path) -> tuple[int, int]:
     """(width, height) of an image file from its header (no pixels decoded)."""
-    path = Path(path)
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: image file not found") from None
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
-        raise DatasetError(f"{path}: unreadable or corrupt image ({e})") from None
+    return _open(Path(path), pixels=False).size
 
 
 def read_image(path) -> np.ndarray:

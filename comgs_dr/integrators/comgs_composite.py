@@ -46,6 +46,14 @@ VARIANTS = ("sop", "trace", "noshadow", "paste")
 MIN_WEIGHT = 1e-3             # pixels where a layer covers less than this are not shaded
 
 
+def is_file_property(key: str, value) -> bool:
+    """Whether property ``key`` (of value ``value``) names a file the integrator reads: the
+    maps, probe sets and the sky (an empty ``sky`` turns it off)."""
+    if key == "sky":
+        return bool(str(value))
+    return key in ("shadow_probes", "envmap") or key.startswith(("envmap_", "probes_"))
+
+
 def _existing_file(key: str, path: str) -> str:
     """``path`` resolved as Mitsuba resolves files (a relative path in an XML scene: against
     the XML's folder, during loading), or FileNotFoundError naming the property. Checked
@@ -126,8 +134,7 @@ class CompositeBase(AttachedRender):
         self.scene_id = str(props.get("scene_shape", "scene"))
         keys = list(props.keys())
         files = {k: _existing_file(k, str(props[k])) for k in keys
-                 if k in ("shadow_probes", "envmap") or k.startswith(("envmap_", "probes_"))
-                 or (k == "sky" and str(props[k]))}
+                 if is_file_property(k, props[k])}
         self.shadow_path = files.get("shadow_probes")
         self.variant = str(props.get("variant", "sop" if self.shadow_path else "trace"))
         if self.variant not in VARIANTS:

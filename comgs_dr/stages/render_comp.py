@@ -25,6 +25,7 @@ from comgs_dr.core import runlog
 from comgs_dr.core.colorspace import srgb_encode
 from comgs_dr.data import comp_folder
 from comgs_dr.data.images import read_image, write_png8
+from comgs_dr.integrators.comgs_composite import is_file_property
 from comgs_dr.eval.metrics import psnr, ssim
 from comgs_dr.train.checkpoint import atomic_write_text
 
@@ -40,8 +41,7 @@ def load_comp_scene(comp_dir, variant: str = "sop", materials: dict | None = Non
     m = comp_folder.read_manifest(comp_dir)
     props = comp_folder.integrator_props(comp_dir, m, variant, materials, **integrator_extra)
     for k, v in props.items():      # here: mi.load_dict hides a plugin's error in its text
-        if (k in ("shadow_probes", "sky") or k.startswith(("envmap_", "probes_"))) and v \
-                and not Path(v).is_file():
+        if is_file_property(k, v) and not Path(v).is_file():
             raise FileNotFoundError(f"{comp_dir}: the composition's {k} file is missing: {v}")
     d = {"type": "scene", "integrator": props, **comp_folder.shape_dicts(m)}
     for i, s in enumerate(sensors):
