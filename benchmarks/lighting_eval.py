@@ -20,6 +20,11 @@ traced from procedural surfel scenes), with a random rotation about Z:
     python benchmarks/lighting_eval.py --maps ../shared/data/hdri --held-out   # 5 unseen maps
     python benchmarks/lighting_eval.py --maps ../shared/data/hdri --weights W.pt --masks 16
     python benchmarks/lighting_eval.py --maps DIR --quick        # 2 masks per map, res 32
+    python benchmarks/lighting_eval.py --maps DIR --cv-heads CV  # each map: a head without it
+
+``--cv-heads CV`` (``train-light-head --cv-out CV``): every map is scored with ``CV/<stem>.pt``,
+the light head of the cross-validation fold that left that map out, so a head fitted on
+every real map can still be scored on maps its own fold never saw.
 
 Before the run and again at its end, a map that one of the learned models used was fitted
 on (its model card's list of maps, ``pano_data.trained_maps``, matched by file stem) is named
@@ -92,6 +97,9 @@ def parse_args(argv=None):
                     "shipped backends.DEFAULT_WEIGHTS if present, else no net)")
     ap.add_argument("--light-head", default=None, help="light-head weights (default: the "
                     "shipped lights.DEFAULT_HEAD if present; 'none': no +lights methods)")
+    ap.add_argument("--cv-heads", default=None, help="folder of cross-validation light heads "
+                    "(train-light-head --cv-out): each map is scored with <map stem>.pt, a "
+                    "head fitted without it (instead of --light-head)")
     ap.add_argument("--trust-brackets", type=float, default=None, help="lights.add_lights' "
                     "trust_brackets for the +lights methods (default: its default)")
     ap.add_argument("--diffusers", default=None, help="local diffusers model folder "
@@ -123,7 +131,26 @@ def parse_args(argv=None):
         a.masks, a.res, a.sphere_size, a.quad = 2, 32, 32, 16
     if a.masks < 1 or a.res < 4 or a.draws < 1:
         ap.error("--masks and --draws must be >= 1 and --res >= 4")
+    if a.cv_heads is not None and a.light_head is not None:
+        ap.error("--cv-heads replaces --light-head; give one of them")
     return a
+
+
+def cv_head_paths(args, maps) -> dict:
+    """{map stem: its cross-validation head} from ``--cv-heads`` ({} without it);
+    FileNotFoundError naming every map without one, before any work."""
+    if args.cv_heads is None:
+        return {}
+    d = Path(args.cv_heads)
+    if not d.is_dir():
+        raise FileNotFoundError(f"--cv-heads: no such folder {d}")
+    out = {p.stem: d / f"{p.stem}.pt" for p in maps}
+    missing = sorted(k for k, v in out.items() if not v.is_file())
+    if missing:
+        raise FileNotFoundError(f"--cv-heads: no head for {', '.join(missing)} in {d} "
+                                f"(train-light-head --cv-out saves one per real map it "
+                                f"was given)")
+    return out
 
 
 # ---------------------------------------------------------------------------------------
@@ -176,7 +203,7 @@ def model_cards(args, labels: dict, maps) -> dict:
                            else None)
     if net:
         out["completion net"] = Path(net)
-    if args.light_head != "none":
+    if args.light_head != "none" and args.cv_heads is None:
         head = Path(args.light_head) if args.light_head else Path(lights.DEFAULT_HEAD)
         if head.is_file():
             out["light head"] = head
@@ -193,6 +220,12 @@ def training_overlap(args) -> dict:
     maps, labels = select_maps(args)
     seen = {name: pano.trained_maps(path) for name, path in model_cards(args, labels, maps).items()}
     over = {p.stem: [n for n, s in seen.items() if s is not None and p.stem in s] for p in maps}
+    for stem, path in cv_head_paths(args, maps).items():       # each map's own head
+        s = pano.trained_maps(path)
+        if s is None:
+            seen[f"cv head {stem}"] = None
+        elif stem in s:
+            over[stem].append("cv light head")
     return {"trained_on": {k: v for k, v in over.items() if v},
             "no_card": [n for n, s in seen.items() if s is None]}
 
@@ -251,13 +284,14 @@ class _LastCall:
 
 
 def make_methods(weights, head_path=None, diffusers=None,
-                 colour: str = "default") -> tuple[dict, object]:
+                 colour: str = "default", head=None) -> tuple[dict, object]:
     """({name: (backend, with_lights)}, light head or None): the net (if weights) and
-    net+lights (if a head), the fill baselines, push_pull+lights, diffusers (if asked)."""
+    net+lights (if a head), the fill baselines, push_pull+lights, diffusers (if asked).
+    ``head``: a loaded head to use instead of ``head_path``'s."""
     backends = importlib.import_module("comgs_dr.lighting.backends")
     lights = importlib.import_module("comgs_dr.lighting.lights")
-    methods, head = {}, None
-    if head_path != "none":
+    methods = {}
+    if head is None and head_path != "none":
         hp = Path(head_path) if head_path else lights.DEFAULT_HEAD
         if hp.is_file():
             head = lights.load_head(hp)
@@ -340,8 +374,9 @@ def evaluate(args, progress=print) -> dict:
     maps, labels = select_maps(args)
     h, w = args.res, 2 * args.res
     gt_maps = load_eval_maps(maps, h)              # every map checked before any work
+    cv_heads = {k: L.load_head(v) for k, v in cv_head_paths(args, maps).items()}
     methods, head = make_methods(args.weights, args.light_head, args.diffusers,
-                                 args.blend_colour)
+                                 args.blend_colour, next(iter(cv_heads.values()), None))
     rng = np.random.default_rng(args.seed)
     sphere = dict(size=args.sphere_size, azimuths=lm.ARRAY_AZIMUTHS, quad_height=args.quad)
     t0 = time.perf_counter()
@@ -351,6 +386,7 @@ def evaluate(args, progress=print) -> dict:
     for mi_, path in enumerate(maps):
         n0, skip0 = len(records), skipped
         gt_map = gt_maps[path]
+        head = cv_heads.get(path.stem, head)
         label_req = str(labels.get(path.stem, args.default_label))
         if label_req not in scene_label.LABEL_CHOICES:
             raise ValueError(f"--labels: {path.stem}: unknown label {label_req!r}")

@@ -271,3 +271,33 @@ def test_maps_the_models_were_trained_on_are_named(tmp_path, capsys):
     out = capsys.readouterr().out
     assert f"WARNING: {trained} was in the training data of the light head" in out
     assert "the scene label has no model card" in out
+
+
+def test_cv_heads_are_checked_per_map(tmp_path, capsys):
+    """--cv-heads scores each map with its own fold head: a map without one is named before
+    any work, and a fold head whose card lists its own map is a training overlap."""
+    import pytest as _pytest
+
+    from comgs_dr.lighting import pano_data
+    from comgs_dr.lighting.envmap import write_exr
+    from comgs_dr.lighting.lights import LightHead, save_head
+    maps, cv = tmp_path / "maps", tmp_path / "cv"
+    for stem in ("a", "b"):
+        write_exr(maps / f"{stem}.exr", np.full((8, 16, 3), 0.5), "equirect")
+    bench = _bench()
+    args = bench.parse_args(["--maps", str(maps), "--cv-heads", str(cv), "--default-label",
+                             "outdoor"])
+    with _pytest.raises(FileNotFoundError, match="no such folder"):
+        bench.cv_head_paths(args, bench.list_maps(maps))
+    for stem, others in (("a", ["b"]), ("b", ["a", "b"])):
+        save_head(LightHead(), cv / f"{stem}.pt")
+        (cv / f"{stem}.json").write_text(json.dumps({"maps": others}))
+    (cv / "b.pt").unlink()
+    with _pytest.raises(FileNotFoundError, match="no head for b"):
+        bench.cv_head_paths(args, bench.list_maps(maps))
+    save_head(LightHead(), cv / "b.pt")
+    ov = bench.training_overlap(args)
+    assert ov == {"trained_on": {"b": ["cv light head"]}, "no_card": []}
+    with _pytest.raises(SystemExit):
+        bench.parse_args(["--maps", str(maps), "--cv-heads", str(cv), "--light-head", "x.pt"])
+    assert pano_data.trained_maps(cv / "a.pt") == frozenset({"b"})

@@ -335,6 +335,21 @@ def test_train_light_head_tiny_run(tmp_path):
                                                              np.ones((64, 128))), 0))
     torch.testing.assert_close(ens(x), torch.stack([h(x) for h in ens.heads]).mean(0))
     torch.testing.assert_close(ens.heads[0](x), head(x))                 # member 0 = seed 0
+    # --cv-out: the left-out map's fold head, whose card does not list that map
+    from comgs_dr.lighting.pano_data import trained_maps
+    from comgs_dr.stages.train_light_head import cross_validate
+    d = np.load(cfg.data_dir / "light_head_data.npz")
+    x, y = torch.from_numpy(d["features"]), torch.from_numpy(d["targets"])
+    cv = cross_validate(x, y, d["groups"], d["names"], cfg, tmp_path / "cv")
+    assert sorted(p.name for p in (tmp_path / "cv").iterdir()) == ["yard.json", "yard.pt"]
+    assert trained_maps(tmp_path / "cv" / "yard.pt") == frozenset()
+    fold = L.load_head(tmp_path / "cv" / "yard.pt")
+    te = torch.from_numpy(d["groups"] == 0)
+    assert abs(float((fold(x[te]) - y[te]).abs().mean()) - cv[0]["mae_log"]) < 1e-3
+    cross_validate(x, y, d["groups"], d["names"], replace(cfg, ensemble=2), tmp_path / "cv2")
+    fold2 = L.load_head(tmp_path / "cv2" / "yard.pt")          # the folds fit what ships
+    assert isinstance(fold2, L.HeadEnsemble) and len(fold2.heads) == 2
+    torch.testing.assert_close(fold2.heads[0](x), fold(x))
 
 
 def test_scene_probe_is_the_maps_light_inside_the_composition_scene(tmp_path):

@@ -69,7 +69,7 @@ class TrainLightHeadConfig:
     room_height: int = 64         # rooms are traced at this height, area-averaged below it
     white_core: bool = False      # training regions as ``clipped_regions(white_core=...)``
     # > 1: save a ``lights.HeadEnsemble`` of heads fitted with seeds seed … seed + k − 1 (the
-    # CV stays single-head). Seeds 0, 1, 2 alone gave a held-out light angle of 31.7°, 50.6°,
+    # CV folds fit the same ensemble). Seeds 0, 1, 2 alone gave a held-out light angle of 31.7°, 50.6°,
     # 41.7°, their 5-seed ensemble 32.2° (README); the shipped head is one head.
     ensemble: int = 1
     # Per real map, panoramas of the map's light *inside a scene*: path-traced at a random
@@ -257,9 +257,25 @@ def fit_head(x: torch.Tensor, y: torch.Tensor, cfg: TrainLightHeadConfig,
     return head.eval()
 
 
-def cross_validate(x, y, groups, names, cfg: TrainLightHeadConfig) -> list[dict]:
+def fit_heads(x: torch.Tensor, y: torch.Tensor, cfg: TrainLightHeadConfig,
+              hist: list | None = None) -> L.LightHead | L.HeadEnsemble:
+    """``fit_head`` with seed ``cfg.seed``, or with ``cfg.ensemble`` > 1 a ``HeadEnsemble``
+    of heads fitted with seeds seed … seed + ensemble − 1 (``hist``: the first's curve)."""
+    head = fit_head(x, y, cfg, hist)
+    if cfg.ensemble <= 1:
+        return head
+    return L.HeadEnsemble([head] + [fit_head(x, y, replace(cfg, seed=cfg.seed + k))
+                                    for k in range(1, cfg.ensemble)])
+
+
+def cross_validate(x, y, groups, names, cfg: TrainLightHeadConfig,
+                   save_dir: Path | None = None) -> list[dict]:
     """Leave-one-real-map-out, and quarter-of-skies / quarter-of-rooms-out folds: the mean
-    absolute error of the log gain on the left-out regions, and a constant guess's."""
+    absolute error of the log gain on the left-out regions, and a constant guess's. Each
+    fold fits what ``train`` ships (``fit_heads``: an ensemble when ``cfg.ensemble`` > 1).
+    ``save_dir``: each left-out map's fold head is saved there as ``<map stem>.pt`` with its
+    card (``maps``: the real maps it was fitted on), for ``lighting_eval --cv-heads``: a
+    head that never saw the map it is scored on."""
     folds = [(str(n), groups == i) for i, n in enumerate(names)]
     for base, kind in ((1000, "skies"), (2000, "rooms")):
         sel = (groups >= base) & (groups < base + 1000)
@@ -270,28 +286,37 @@ def cross_validate(x, y, groups, names, cfg: TrainLightHeadConfig) -> list[dict]
         te = torch.from_numpy(te)
         if not te.any() or te.all():
             continue
-        head = fit_head(x[~te], y[~te], cfg)
+        head = fit_heads(x[~te], y[~te], cfg)
         with torch.no_grad():
             err = (head(x[te]) - y[te])
         out.append({"left_out": name, "regions": int(te.sum()),
                     "mae_log": round(float(err.abs().mean()), 3),
                     "bias_log": round(float(err.mean()), 3),
                     "mae_log_const": round(float((y[te] - y[~te].median()).abs().mean()), 3)})
+        if save_dir is not None and name in set(map(str, names)):
+            fold = {"left_out": name, "maps": [str(n) for n in names if str(n) != name],
+                    "held_out": list(cfg.held_out) + [name], "cross_validation": [out[-1]],
+                    "config": {k: (str(v) if isinstance(v, Path) else v)
+                               for k, v in asdict(cfg).items()}}
+            path = Path(save_dir) / f"{name}.pt"
+            L.save_head(head, path, fold)
+            path.with_suffix(".json").write_text(json.dumps(json_safe(fold), indent=1,
+                                                            allow_nan=False))
     return out
 
 
-def train(cfg: TrainLightHeadConfig, progress: bool = True, command: str = "") -> dict:
+def train(cfg: TrainLightHeadConfig, progress: bool = True, command: str = "",
+          cv_dir: Path | None = None) -> dict:
+    """Build (or load) the data, cross-validate (fold heads saved in ``cv_dir`` when given),
+    fit the head on everything and save it with its card at ``cfg.out``."""
     torch.set_num_threads(cfg.threads)
     data = build_data(cfg, progress)
     x = torch.from_numpy(data["features"])
     y = torch.from_numpy(data["targets"])
     t0 = time.perf_counter()
-    cv = cross_validate(x, y, data["groups"], data["names"], cfg) if cfg.cv else []
+    cv = cross_validate(x, y, data["groups"], data["names"], cfg, cv_dir) if cfg.cv else []
     hist = []
-    head = fit_head(x, y, cfg, hist)
-    if cfg.ensemble > 1:
-        head = L.HeadEnsemble([head] + [fit_head(x, y, replace(cfg, seed=cfg.seed + k))
-                                        for k in range(1, cfg.ensemble)])
+    head = fit_heads(x, y, cfg, hist)
     info = {"command": command, "regions": int(len(y)),
             "data_seconds": float(data["seconds"]),
             "train_seconds": round(time.perf_counter() - t0, 1),
@@ -334,6 +359,8 @@ def add_arguments(ap) -> None:
                     help="fraction of draws blurred as a reconstruction's sky (0: none)")
     ap.add_argument("--weight-decay", type=float, default=d.weight_decay)
     ap.add_argument("--no-cv", action="store_true", help="skip the cross-validation")
+    ap.add_argument("--cv-out", type=Path, default=None, help="save each left-out map's "
+                    "cross-validation head here as <map stem>.pt (for lighting_eval --cv-heads)")
     ap.add_argument("--seed", type=int, default=d.seed)
     ap.add_argument("--threads", type=int, default=d.threads)
     ap.add_argument("--quiet", action="store_true")
@@ -353,7 +380,9 @@ def run_from_args(args) -> int:
                                room_bulbs=args.bulbs, room_height=args.room_height,
                                white_core=args.white_core, ensemble=args.ensemble,
                                scene_probes=args.scene_probes, draws_scene=args.draws_scene)
-    info = train(cfg, progress=not args.quiet, command=" ".join(sys.argv))
+    if args.cv_out is not None and args.no_cv:
+        raise ValueError("--cv-out saves the cross-validation's heads; it cannot go with --no-cv")
+    info = train(cfg, progress=not args.quiet, command=" ".join(sys.argv), cv_dir=args.cv_out)
     print(f"saved {cfg.out}: {info['regions']} regions, training MAE of log gain "
           f"{info['history'][-1]['train_mae_log']}")
     if info["cross_validation"]:
