@@ -68,7 +68,14 @@ def main(argv=None) -> int:
         if (cache / p.stem / "probe_256.npy").is_file()]
     if not maps:
         raise SystemExit(f"no cached probe_256.npy under {cache} for the given maps")
-    head = L.load_head() if a.light_head is None else L.load_head(a.light_head)
+    fixed = None if a.light_head is None else L.load_head(a.light_head)
+
+    def head_for(stem):
+        """--light-head, or the shipped head (its fold without ``stem`` for a held-out map)."""
+        if fixed is not None:
+            return fixed
+        h = L.held_out_head(stem)
+        return L.load_head() if h == "default" else L.load_head(h)
 
     def cell(rows):
         return ", ".join(f"{g:.0f} ({t:.0f})" for _, g, t in rows) or "no clipped region"
@@ -81,6 +88,7 @@ def main(argv=None) -> int:
         bare = env * pano_data.auto_exposure(env) * a.exposure
         label = pano_data.label_of(m.stem)
         lab = LABELS[label]
+        head = head_for(m.stem)
         cols = [gains(probe, head, lab, a.regions),
                 gains(area_resize_equirect(bare, 256, 512), head, lab, a.regions),
                 gains(area_resize_equirect(probe, 128, 256), head, lab, a.regions)]

@@ -49,7 +49,8 @@ def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print,
                   head_path=None) -> list[dict]:
     """[{map, regions: [{true, seen, head, net}]}] for panoramas (``res`` × 2·``res``) with
     ≥ 2 clipped regions (luminance powers, EV-0 radiance units); ``head_path``: light-head
-    weights (None: the shipped head)."""
+    weights (None: the shipped head, or for a held-out map its fold without that map,
+    ``lights.held_out_head``)."""
     import torch
 
     from comgs_dr.core.colorspace import LUMA
@@ -63,7 +64,7 @@ def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print,
     from lighting_eval import load_eval_map
     torch.set_num_threads(1)
     net = B.load_network_backend()
-    head = L.load_head() if head_path in (None, "default") else L.load_head(head_path)
+    fixed = None if head_path in (None, "default") else L.load_head(head_path)
     h, w = res, 2 * res
     dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
     bank = pano_masks.mask_bank(masks * len(maps), h, w, seed)
@@ -71,6 +72,9 @@ def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print,
     rows = []
     for i, path in enumerate(maps):
         gm, lab = load_eval_map(path, h), C.LABELS[P.label_of(path.stem)]
+        # the shipped head saw every shared map: a held-out map gets its fold without it
+        head = fixed if fixed is not None else L.load_head(
+            L.DEFAULT_HEAD if (f := L.held_out_head(path.stem)) == "default" else f)
         for j in range(masks):
             mk, shift = bank[i * masks + j], int(rng.integers(w))
             if mk["coverage"] < 0.4:

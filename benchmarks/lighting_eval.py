@@ -24,7 +24,10 @@ traced from procedural surfel scenes), with a random rotation about Z:
 
 ``--cv-heads CV`` (``train-light-head --cv-out CV``): every map is scored with ``CV/<stem>.pt``,
 the light head of the cross-validation fold that left that map out, so a head fitted on
-every real map can still be scored on maps its own fold never saw.
+every real map can still be scored on maps its own fold never saw. The shipped head is
+fitted on every shared map, and its folds for the ``pano_data.HELD_OUT`` maps are shipped
+(``lights.CV_HEADS``): without ``--light-head`` / ``--cv-heads`` those maps are scored with
+their fold, the others with the shipped head.
 
 Before the run and again at its end, a map that one of the learned models used was fitted
 on (its model card's list of maps, ``pano_data.trained_maps``, matched by file stem) is named
@@ -137,10 +140,16 @@ def parse_args(argv=None):
 
 
 def cv_head_paths(args, maps) -> dict:
-    """{map stem: its cross-validation head} from ``--cv-heads`` ({} without it);
-    FileNotFoundError naming every map without one, before any work."""
+    """{map stem: its cross-validation head} from ``--cv-heads``; FileNotFoundError naming
+    every map without one, before any work. Without ``--cv-heads`` and ``--light-head``, the
+    maps whose fold of the shipped head is shipped (``lights.held_out_head``: the held-out
+    maps) get that fold, the others the shipped head."""
     if args.cv_heads is None:
-        return {}
+        if args.light_head is not None:
+            return {}
+        lights = importlib.import_module("comgs_dr.lighting.lights")
+        return {p.stem: Path(h) for p in maps
+                if str(h := lights.held_out_head(p.stem)) != "default"}
     d = Path(args.cv_heads)
     if not d.is_dir():
         raise FileNotFoundError(f"--cv-heads: no such folder {d}")
@@ -203,7 +212,7 @@ def model_cards(args, labels: dict, maps) -> dict:
                            else None)
     if net:
         out["completion net"] = Path(net)
-    if args.light_head != "none" and args.cv_heads is None:
+    if args.light_head != "none" and args.cv_heads is None:     # (per-map folds: below)
         head = Path(args.light_head) if args.light_head else Path(lights.DEFAULT_HEAD)
         if head.is_file():
             out["light head"] = head
@@ -221,6 +230,7 @@ def training_overlap(args) -> dict:
     seen = {name: pano.trained_maps(path) for name, path in model_cards(args, labels, maps).items()}
     over = {p.stem: [n for n, s in seen.items() if s is not None and p.stem in s] for p in maps}
     for stem, path in cv_head_paths(args, maps).items():       # each map's own head
+        over[stem] = [n for n in over[stem] if n != "light head"]
         s = pano.trained_maps(path)
         if s is None:
             seen[f"cv head {stem}"] = None
@@ -374,9 +384,11 @@ def evaluate(args, progress=print) -> dict:
     maps, labels = select_maps(args)
     h, w = args.res, 2 * args.res
     gt_maps = load_eval_maps(maps, h)              # every map checked before any work
-    cv_heads = {k: L.load_head(v) for k, v in cv_head_paths(args, maps).items()}
-    methods, head = make_methods(args.weights, args.light_head, args.diffusers,
-                                 args.blend_colour, next(iter(cv_heads.values()), None))
+    cv_paths = cv_head_paths(args, maps)                    # {stem: a fold head's file}
+    cv_heads = {k: L.load_head(v) for k, v in cv_paths.items()}
+    methods, head0 = make_methods(args.weights, args.light_head, args.diffusers,
+                                  args.blend_colour,
+                                  next(iter(cv_heads.values())) if args.cv_heads else None)
     rng = np.random.default_rng(args.seed)
     sphere = dict(size=args.sphere_size, azimuths=lm.ARRAY_AZIMUTHS, quad_height=args.quad)
     t0 = time.perf_counter()
@@ -386,7 +398,7 @@ def evaluate(args, progress=print) -> dict:
     for mi_, path in enumerate(maps):
         n0, skip0 = len(records), skipped
         gt_map = gt_maps[path]
-        head = cv_heads.get(path.stem, head)
+        head = cv_heads.get(path.stem, head0)
         label_req = str(labels.get(path.stem, args.default_label))
         if label_req not in scene_label.LABEL_CHOICES:
             raise ValueError(f"--labels: {path.stem}: unknown label {label_req!r}")
@@ -447,7 +459,8 @@ def evaluate(args, progress=print) -> dict:
                                  "est": ests})
         progress(f"[{mi_ + 1}/{len(maps)}] {path.name}: {(len(records) - n0) // len(methods)} "
                  f"samples, {skipped - skip0} masks < 40 % skipped "
-                 f"({time.perf_counter() - t0:.1f} s in all)")
+                 f"({time.perf_counter() - t0:.1f} s in all)"
+                 + (f"; light head {cv_paths[path.stem]}" if path.stem in cv_paths else ""))
     return {"records": records, "examples": examples, "skipped": skipped,
             "methods": list(methods), "maps": [p.name for p in maps], "t_masks": t_masks,
             "t_render": float(np.mean(t_render)) if t_render else float("nan"),

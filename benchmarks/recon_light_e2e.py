@@ -155,7 +155,7 @@ def main(argv=None):
     from comgs_dr.lighting import pano_data
     from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light
     from comgs_dr.train import background as bgenv
-    from sun_e2e import TABLE_HEAD, e2e_methods, outdoor_maps, print_summary, score
+    from sun_e2e import TABLE_HEAD, e2e_methods, map_head, outdoor_maps, print_summary, score
     maps = outdoor_maps(a.maps)
     methods, be = e2e_methods(head=a.light_head, weights=a.weights)
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores; capture {a.res} px, "
@@ -169,11 +169,12 @@ def main(argv=None):
         t_build = time.perf_counter() - t0
         truth = true_light(p, Path(a.out) / p.stem, scale, a.truth)
         label = pano_data.label_of(p.stem) if a.label == "name" else a.label
+        heads = {"default": map_head(p.stem, "default")}
         for name, (kind, head) in methods.items():
             t0 = time.perf_counter()
             kw = {} if a.trust_brackets is None else {"light_trust_brackets": a.trust_brackets}
             cfg = EstimateConfig(width=2 * a.trace_res, height=a.trace_res, oct_res=64,
-                                 label=label, light_head=head, **kw)
+                                 label=label, light_head=heads.get(head, head), **kw)
             r = estimate_light(str(run / "point_cloud.ply"), pos, cfg, be[kind])
             dt = time.perf_counter() - t0
             row = score(p.stem, name, r, truth, dt)

@@ -63,7 +63,7 @@ from comgs_dr.lighting.sg import render_lobes, sg_integral, sg_sharpness
 
 __all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_regions",
            "FEATURES", "region_features", "LightHead", "HeadEnsemble", "save_head", "load_head",
-           "DEFAULT_HEAD", "predict_lobes", "downsample_clipped", "shared_power", "vote_shares",
+           "DEFAULT_HEAD", "CV_HEADS", "held_out_head", "predict_lobes", "downsample_clipped", "shared_power", "vote_shares",
            "add_lights", "describe_regions", "regions_overlay", "SAT", "TRUST_BRACKETS"]
 
 MAX_LOG_GAIN = 25.0       # P_true / P_seen ≤ e^25 ≈ 7e10 (a real sun at EV 0: ~1e5)
@@ -72,6 +72,10 @@ TRUST_BRACKETS = 0.25      # add_lights: the brackets' vote on which region hold
                            # (benchmarks/light_ranking.py; README "The brackets' vote")
 BANDS_DEG = ((0.0, 3.0), (3.0, 10.0), (10.0, 30.0))   # rings beyond the region's radius
 DEFAULT_HEAD = Path(__file__).parent / "weights" / "light_head.pt"
+# The shipped head is fitted on every shared real map; for the maps the benchmarks score as
+# held out (``pano_data.HELD_OUT``) its cross-validation folds are shipped here: <stem>.pt,
+# the head fitted the same way without that map (``train-light-head --cv-out``).
+CV_HEADS = DEFAULT_HEAD.parent / "light_head_cv"
 _FORMAT = "comgs_dr.lighting.light_head/1"
 
 
@@ -276,6 +280,16 @@ def load_head(path=DEFAULT_HEAD) -> LightHead | HeadEnsemble:
         heads.append(LightHead(len(FEATURES), int(ck["hidden"])))
         heads[-1].load_state_dict(sd)
     return (heads[0] if len(heads) == 1 else HeadEnsemble(heads)).eval()
+
+
+def held_out_head(stem: str, head="default"):
+    """The light head to score map ``stem`` with, so that the score is a held-out one:
+    ``head`` itself unless it is "default" (or None) and ``CV_HEADS/<stem>.pt`` exists, the
+    shipped head's cross-validation fold that never saw that map; then that path."""
+    if head not in (None, "default"):
+        return head
+    cv = CV_HEADS / f"{stem}.pt"
+    return cv if cv.is_file() else head
 
 
 @torch.no_grad()
