@@ -63,8 +63,8 @@ from comgs_dr.lighting.sg import render_lobes, sg_integral, sg_sharpness
 
 __all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_regions",
            "FEATURES", "region_features", "LightHead", "HeadEnsemble", "save_head", "load_head",
-           "DEFAULT_HEAD", "CV_HEADS", "held_out_head", "predict_lobes", "downsample_clipped", "shared_power", "vote_shares",
-           "add_lights", "describe_regions", "regions_overlay", "SAT", "TRUST_BRACKETS"]
+           "DEFAULT_HEAD", "CV_HEADS", "held_out_head", "predict_lobes", "downsample_clipped",
+           "shared_power", "vote_shares", "add_lights", "describe_regions", "regions_overlay", "SAT", "TRUST_BRACKETS"]
 
 MAX_LOG_GAIN = 25.0       # P_true / P_seen ≤ e^25 ≈ 7e10 (a real sun at EV 0: ~1e5)
 MAX_REGIONS = 8            # regions per panorama given to the head (largest observed power)
