@@ -173,7 +173,7 @@ def main(argv=None):
         t_build = time.perf_counter() - t0
         truth = true_light(p, Path(a.out) / p.stem, scale, a.truth)
         label = pano_data.label_of(p.stem) if a.label == "name" else a.label
-        heads = {"default": map_head(p.stem, "default")}
+        heads = {"default": map_head(p.stem, "default")} if a.light_head == "default" else {}
         for name, (kind, head) in methods.items():
             t0 = time.perf_counter()
             kw = {} if a.trust_brackets is None else {"light_trust_brackets": a.trust_brackets}

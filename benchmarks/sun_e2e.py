@@ -201,7 +201,7 @@ def main(argv=None):
         env = env * pano_data.auto_exposure(env)
         sun = extract_lights(env, k=1)[0]["direction"]
         scene, truth = build_scene(env, sun, a.dome_res, a.wedge, a.max_elev)
-        heads = {"default": map_head(stem, "default")}
+        heads = {"default": map_head(stem, "default")} if a.light_head == "default" else {}
         for name, (kind, head) in methods.items():
             t0 = time.perf_counter()
             kw = {} if a.trust_brackets is None else {"light_trust_brackets": a.trust_brackets}
