@@ -72,10 +72,7 @@ def main(argv=None) -> int:
 
     def head_for(stem):
         """--light-head, or the shipped head (its fold without ``stem`` for a held-out map)."""
-        if fixed is not None:
-            return fixed
-        h = L.held_out_head(stem)
-        return L.load_head() if h == "default" else L.load_head(h)
+        return fixed if fixed is not None else L.load_head(L.held_out_head(stem))
 
     def cell(rows):
         return ", ".join(f"{g:.0f} ({t:.0f})" for _, g, t in rows) or "no clipped region"

@@ -73,8 +73,7 @@ def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print,
     for i, path in enumerate(maps):
         gm, lab = load_eval_map(path, h), C.LABELS[P.label_of(path.stem)]
         # the shipped head saw every shared map: a held-out map gets its fold without it
-        head = fixed if fixed is not None else L.load_head(
-            L.DEFAULT_HEAD if (f := L.held_out_head(path.stem)) == "default" else f)
+        head = fixed if fixed is not None else L.load_head(L.held_out_head(path.stem))
         for j in range(masks):
             mk, shift = bank[i * masks + j], int(rng.integers(w))
             if mk["coverage"] < 0.4:

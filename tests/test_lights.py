@@ -471,6 +471,8 @@ def test_held_out_maps_get_the_shipped_heads_fold_without_them():
         assert trained_maps(path) == card - {stem}
         assert L.held_out_head(stem, "mine.pt") == "mine.pt"     # a given head is kept
     assert L.held_out_head("blender_city") == "default"          # no fold shipped for it
+    x = torch.zeros(1, len(L.FEATURES))                           # "default" loads the shipped
+    torch.testing.assert_close(L.load_head("default")(x), L.load_head(L.DEFAULT_HEAD)(x))
     assert L.held_out_head("blender_city", None) is None
     img, _ = _sun_map()
     ldr = expose(img * 0.05, 0.0)

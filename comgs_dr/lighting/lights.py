@@ -260,9 +260,10 @@ def save_head(head: LightHead | HeadEnsemble, path, info: dict | None = None) ->
 
 
 def load_head(path=DEFAULT_HEAD) -> LightHead | HeadEnsemble:
-    """LightHead, or HeadEnsemble when the file holds several, (eval mode) from ``save_head``;
-    FileNotFoundError if missing, ValueError for another format or another feature list."""
-    path = Path(path)
+    """LightHead, or HeadEnsemble when the file holds several, (eval mode) from ``save_head``
+    ("default": ``DEFAULT_HEAD``, as ``held_out_head`` may answer); FileNotFoundError if
+    missing, ValueError for another format or another feature list."""
+    path = DEFAULT_HEAD if str(path) == "default" else Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"light head weights not found: {path}")
     try:
