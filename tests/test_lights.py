@@ -281,15 +281,63 @@ def test_training_targets_are_the_true_power_ratio():
     from comgs_dr.stages.train_light_head import TrainLightHeadConfig, _draws
     img, s = _sun_map(radiance=5e4)
     cfg = TrainLightHeadConfig(aug_ev=0.0, wb_jitter=0.0, full_view=1.0, blur_frac=0.0)
-    feats, targets, groups = [], [], []
+    feats, targets, groups, panos, seen = [], [], [], [], []
     _draws(np.random.default_rng(0), img, np.ones((1, 64, 128)), 3, cfg, 0, 7, feats, targets,
-           groups)
+           groups, panos, seen)
     assert len(targets) >= 3 and groups[0] == 7
+    assert len(panos) == len(seen) == len(targets) and panos[0] == 0 and panos[-1] == 2
+    assert np.all(np.diff(panos) >= 0)                 # one running index per panorama
     from comgs_dr.lighting.pano_data import auto_exposure
     k = auto_exposure(img)
     sun = float((((img * k) @ LUMA) * _dw(64, 128))[img[..., 0] > 1e3].sum())
     seen = float(_dw(64, 128)[img[..., 0] > 1e3].sum())      # clipped at the white level 1
     assert max(targets) == pytest.approx(np.log(sun / seen), rel=0.05)
+
+
+def test_rank_loss_matches_per_panorama_softmax_and_its_gradient():
+    """_rank_loss (scatter form) = the mean over panoramas of the cross-entropy of
+    softmax(true log powers) and log softmax(predicted), checked against a loop; its gradient
+    against central differences; finite for powers far apart (e^±80)."""
+    from comgs_dr.stages.train_light_head import _rank_loss
+    g = torch.Generator().manual_seed(0)
+    pred = torch.randn(9, generator=g, dtype=torch.float64)
+    y, ls = torch.randn(9, generator=g, dtype=torch.float64), torch.randn(9, generator=g)
+    seg = torch.tensor([0, 0, 0, 1, 1, 2, 2, 2, 2])
+    ref = sum(-(torch.softmax((ls + y)[seg == b], 0)
+                * torch.log_softmax((ls + pred)[seg == b], 0)).sum() for b in range(3)) / 3
+    p = pred.clone().requires_grad_()
+    loss = _rank_loss(p, y, ls.double(), seg)
+    assert float(loss.detach()) == pytest.approx(float(ref), rel=1e-12)
+    loss.backward()
+    eps = 1e-6
+    for i in range(9):
+        d = torch.zeros(9, dtype=torch.float64)
+        d[i] = eps
+        fd = (_rank_loss(pred + d, y, ls.double(), seg)
+              - _rank_loss(pred - d, y, ls.double(), seg)) / (2 * eps)
+        assert float(p.grad[i]) == pytest.approx(float(fd), abs=1e-7)
+    far = _rank_loss(torch.tensor([80.0, -80.0]), torch.tensor([-80.0, 80.0]),
+                     torch.zeros(2), torch.tensor([0, 0]))
+    assert torch.isfinite(far) and float(far) > 100     # the wrong region first: large loss
+
+
+def test_pano_sampler_and_top1():
+    from comgs_dr.stages.train_light_head import _PanoSampler, top1
+    panos = np.array([0, 0, 1, 2, 2, 2, 3, 4, 4])
+    sm = _PanoSampler(panos, 0)
+    for _ in range(20):
+        idx, seg = sm.sample(2)
+        idx, seg = idx.numpy(), seg.numpy()
+        for b in np.unique(seg):                  # whole panoramas of ≥ 2 regions each
+            p = np.unique(panos[idx[seg == b]])
+            assert len(p) == 1 and p[0] in (0, 2, 4)
+            assert (seg == b).sum() == (panos == p[0]).sum()
+    assert not _PanoSampler(np.array([0, 1, 2]), 0)          # no panorama with two regions
+    truth = np.array([1.0, 2.0, 5.0, 0.0, 3.0, 1.0, 9.0, 4.0, 3.0])
+    score = np.array([3.0, 2.0, 0.0, 1.0, 0.0, 2.0, 0.0, 1.0, 2.0])
+    # panoramas 0, 2, 4 have two or more regions; the score picks the true top in none
+    assert top1(score, truth, panos) == (0.0, 3)
+    assert top1(truth, truth, panos) == (1.0, 3)
 
 
 def test_room_resize_round_trip_and_bad_sizes():

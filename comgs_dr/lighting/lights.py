@@ -138,7 +138,10 @@ FEATURES = (["log_solid_angle", "log_pixel_solid_angle", "elevation", "abs_eleva
              "fully_clipped", "compactness"]
             + [f"ring{i}_{k}" for i in range(len(BANDS_DEG))
                for k in ("seen", "clipped", "log_lum", "blue")]
-            + ["log_mean_lum", "log_upper_lum", "log_lower_lum", "coverage"])
+            + ["log_mean_lum", "log_upper_lum", "log_lower_lum", "coverage"]
+            # context: the region against the panorama's other regions (``_context``)
+            + ["log_seen_vs_max", "seen_rank", "log_seen_share"])
+N_BASE_FEATURES = 27       # heads fitted before the context features use this prefix
 
 
 def _mean_lum(lum, sel, dw) -> float:
@@ -196,7 +199,21 @@ def region_features(ldr, mask, regions, label: int = 2, sat: float = SAT) -> np.
                   np.log(_mean_lum(lum, bu, dw) + 1e-3),
                   float(rgb[2] / rgb.sum()) if rgb.sum() > 0 else 1.0 / 3.0]
         rows.append(f + glob)
-    return np.asarray(rows, np.float32).reshape(len(regions), len(FEATURES))
+    rows = np.asarray(rows, np.float32).reshape(len(regions), N_BASE_FEATURES)
+    return np.concatenate([rows, _context(regions)], 1)
+
+
+def _context(regions) -> np.ndarray:
+    """[R, 3] float32: each region's log seen luminance power minus the largest one's, its
+    rank by seen power (0 = largest) and log of its share of the regions' seen power. The
+    other features describe a region alone; these let the head rank look-alike lamps
+    against each other (with the listwise loss of ``train-light-head --rank-weight``)."""
+    ls = np.log(np.maximum([float(r.seen_power @ LUMA) for r in regions], 1e-12))
+    if not len(ls):
+        return np.zeros((0, 3), np.float32)
+    rank = np.argsort(np.argsort(-ls, kind="stable"), kind="stable")
+    share = ls - (ls.max() + np.log(np.exp(ls - ls.max()).sum()))
+    return np.stack([ls - ls.max(), rank, share], 1).astype(np.float32)
 
 
 def ring_colour(ldr, mask, region: Region, sat: float = SAT, max_deg: float = 10.0):
@@ -217,7 +234,8 @@ def ring_colour(ldr, mask, region: Region, sat: float = SAT, max_deg: float = 10
 # ---- The head ----
 
 class LightHead(nn.Module):
-    """MLP: standardised features [B, F] -> log gain [B] ≥ 0 (softplus)."""
+    """MLP: standardised features [B, F] -> log gain [B] ≥ 0 (softplus). ``FEATURES`` only
+    grows at its end: a head fitted on the first n features reads those (``n_features``)."""
 
     def __init__(self, n_features: int = len(FEATURES), hidden: int = 64):
         super().__init__()
@@ -227,7 +245,12 @@ class LightHead(nn.Module):
                                  nn.Linear(hidden, hidden), nn.SiLU(), nn.Linear(hidden, 1))
         self.hidden = hidden
 
+    @property
+    def n_features(self) -> int:
+        return len(self.mean)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = x[..., :self.n_features]
         return nn.functional.softplus(self.mlp((x - self.mean) / self.std)[..., 0])
 
 
@@ -253,7 +276,8 @@ def save_head(head: LightHead | HeadEnsemble, path, info: dict | None = None) ->
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     members = list(head.heads) if isinstance(head, HeadEnsemble) else [head]
-    torch.save({"format": _FORMAT, "features": list(FEATURES), "hidden": head.hidden,
+    n = (head.heads[0] if isinstance(head, HeadEnsemble) else head).n_features
+    torch.save({"format": _FORMAT, "features": list(FEATURES[:n]), "hidden": head.hidden,
                 "state_dict": _cpu_state(members[0]),
                 "members": [_cpu_state(h) for h in members[1:]], "info": info or {}}, path)
     return path
@@ -273,12 +297,13 @@ def load_head(path=DEFAULT_HEAD) -> LightHead | HeadEnsemble:
                          f"({torch_load_error(exc)})") from exc
     if not isinstance(ck, dict) or ck.get("format") != _FORMAT:
         raise ValueError(f"{path}: not a light-head file (format {_FORMAT!r} expected)")
-    if ck.get("features") != list(FEATURES):
+    feats = ck.get("features")
+    if not isinstance(feats, list) or not feats or feats != list(FEATURES[:len(feats)]):
         raise ValueError(f"{path}: made for other features; retrain with comgs "
                          f"train-light-head --out {path}")
     heads = []
     for sd in [ck["state_dict"], *ck.get("members", [])]:
-        heads.append(LightHead(len(FEATURES), int(ck["hidden"])))
+        heads.append(LightHead(len(feats), int(ck["hidden"])))
         heads[-1].load_state_dict(sd)
     return (heads[0] if len(heads) == 1 else HeadEnsemble(heads)).eval()
 

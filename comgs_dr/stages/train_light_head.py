@@ -91,6 +91,11 @@ class TrainLightHeadConfig:
     blur_frac: float = 0.0
     blur_deg: tuple = (0.5, 3.0)
     steps: int = 1000
+    # Weight of a listwise ranking term (``_rank_loss``): per panorama, the cross-entropy of
+    # the softmax of the predicted log powers (log seen + predicted gain) against that of the
+    # true ones, over 64 panoramas with ≥ 2 regions per step. The Huber loss alone scores each
+    # region apart; which region is strongest is what sets the light's direction.
+    rank_weight: float = 0.0
     lr: float = 3e-3
     hidden: int = 64
     weight_decay: float = 1e-2
@@ -99,7 +104,9 @@ class TrainLightHeadConfig:
     threads: int = 2
 
 
-def _draws(rng, hdr, masks, n, cfg, label, group, feats, targets, groups):
+def _draws(rng, hdr, masks, n, cfg, label, group, feats, targets, groups, panos, seen_log):
+    """``n`` augmented views of ``hdr``: per clipped region its features, log gain, group
+    (map identity), panorama index (a running count) and log seen power."""
     h, w = hdr.shape[:2]
     dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))
     k = P.auto_exposure(hdr)
@@ -114,11 +121,14 @@ def _draws(rng, hdr, masks, n, cfg, label, group, feats, targets, groups):
             continue
         feats.append(L.region_features(ldr, a, regions, lab))
         lum = m @ LUMA
+        pano = panos[-1] + 1 if panos else 0
         for r in regions:
             true = float((lum * dw * r.pixels).sum())
             seen = max(float(r.seen_power @ LUMA), 1e-12)
             targets.append(np.log(max(true / seen, 1.0)))
             groups.append(group)
+            panos.append(pano)
+            seen_log.append(np.log(seen))
 
 
 def scene_probe(env, rng, textures: dict, height: int = 256, spp_side: int = 4) -> np.ndarray:
@@ -167,14 +177,16 @@ def _resize_rows(img, h: int) -> np.ndarray:
 
 
 def build_data(cfg: TrainLightHeadConfig, progress: bool = True) -> dict:
-    """Features [N, F], targets [N] (log gain), groups [N] (map identity) and names."""
+    """Features [N, F], targets [N] (log gain), groups [N] (map identity), panos [N] (which
+    panorama), log_seen [N] (log of the region's seen luminance power) and names."""
     cache = Path(cfg.data_dir) / "light_head_data.npz"
     key = json.dumps({k: str(v) for k, v in asdict(cfg).items()
                       if k not in ("out", "steps", "lr", "hidden", "threads", "weight_decay", "cv",
-                                   "ensemble")}, sort_keys=True)
+                                   "ensemble", "rank_weight")}
+                     | {"features": list(L.FEATURES)}, sort_keys=True)
     if cache.is_file():
         d = dict(np.load(cache, allow_pickle=False))
-        if str(d.get("key")) == key:
+        if str(d.get("key")) == key and "panos" in d:        # older caches lack panos
             return d
     rng = np.random.default_rng(cfg.seed)
     t0 = time.perf_counter()
@@ -197,28 +209,29 @@ def build_data(cfg: TrainLightHeadConfig, progress: bool = True) -> dict:
         for i, p in enumerate(tqdm(files, desc="scene probes", disable=not progress)):
             env = P.load_map(p, 256, 512)
             probes[i] = [scene_probe(env, prng, textures) for _ in range(cfg.scene_probes)]
-    feats, targets, groups = [], [], []
+    feats, targets, groups, panos, seen_log = acc = [], [], [], [], []
     for h in cfg.heights:
         for i, ps in probes.items():
             for pr in ps:
                 _draws(rng, _resize_rows(pr, h).astype(np.float64), masks, cfg.draws_scene, cfg,
-                       C.LABELS[P.label_of(files[i].stem)], i, feats, targets, groups)
+                       C.LABELS[P.label_of(files[i].stem)], i, *acc)
         for i, p in enumerate(tqdm(files, desc=f"maps {h}px", disable=not progress)):
             _draws(rng, P.load_map(p, h, 2 * h).astype(np.float64), masks, cfg.draws_real,
-                   cfg, C.LABELS[P.label_of(p.stem)], i, feats, targets, groups)
+                   cfg, C.LABELS[P.label_of(p.stem)], i, *acc)
         sky_rng = np.random.default_rng(cfg.seed + 99)          # the same skies at every size
         for i in tqdm(range(cfg.n_sky), desc=f"skies {h}px", disable=not progress):
             sky = P.sunsky_panorama(sky_rng, h, 2 * h).astype(np.float64)
             _draws(rng, sky, masks, cfg.draws_sky, cfg, C.LABELS["outdoor"],
-                   1000 + i, feats, targets, groups)
+                   1000 + i, *acc)
         if h <= 128:
             for i, room in enumerate(rooms):
                 room = _resize_rows(room, h).astype(np.float64)
                 if room.max() > 0:
                     _draws(rng, room, masks, cfg.draws_room, cfg, C.LABELS["indoor"],
-                           2000 + i, feats, targets, groups)
+                           2000 + i, *acc)
     d = {"features": np.concatenate(feats).astype(np.float32),
          "targets": np.asarray(targets, np.float32), "groups": np.asarray(groups, np.int64),
+         "panos": np.asarray(panos, np.int64), "log_seen": np.asarray(seen_log, np.float32),
          "names": np.array([p.stem for p in files]), "key": np.array(key),
          "seconds": np.array(time.perf_counter() - t0)}
     cache.parent.mkdir(parents=True, exist_ok=True)
@@ -232,9 +245,52 @@ def _huber(pred, tgt, delta: float = 0.5):
     return torch.nn.functional.huber_loss(pred, tgt, delta=delta)
 
 
+def _rank_loss(pred, y, log_seen, seg):
+    """Listwise ranking loss: mean over panoramas of −Σ softmax(t) · log softmax(s), with
+    s = log seen + pred, t = log seen + y (natural-log powers) over each panorama's regions;
+    ``seg`` [n] the panorama of each region, 0 … B − 1."""
+    s, t = log_seen + pred, log_seen + y                              # [n]
+    b = int(seg.max()) + 1
+
+    def log_softmax(v):
+        m = v.new_full((b,), -torch.inf).scatter_reduce(0, seg, v.detach(), "amax")
+        e = v.new_zeros(b).index_add(0, seg, torch.exp(v - m[seg]))
+        return v - m[seg] - torch.log(e)[seg]
+    p = torch.exp(log_softmax(t))
+    return -(p * log_softmax(s)).sum() / b
+
+
+class _PanoSampler:
+    """Random batches of whole panoramas with ≥ 2 regions (their region indices and a
+    0 … B − 1 panorama index per region)."""
+
+    def __init__(self, panos: np.ndarray, seed: int):
+        order = np.argsort(panos, kind="stable")
+        _, start, count = np.unique(panos[order], return_index=True, return_counts=True)
+        keep = count >= 2
+        self.order, self.start, self.count = order, start[keep], count[keep]
+        self.rng = np.random.default_rng(seed)
+
+    def __bool__(self):
+        return len(self.start) > 0
+
+    def sample(self, k: int = 64):
+        pick = self.rng.integers(len(self.start), size=min(k, len(self.start)))
+        idx = np.concatenate([self.order[s:s + c] for s, c in
+                              zip(self.start[pick], self.count[pick])])
+        seg = np.repeat(np.arange(len(pick)), self.count[pick])
+        return torch.from_numpy(idx), torch.from_numpy(seg)
+
+
 def fit_head(x: torch.Tensor, y: torch.Tensor, cfg: TrainLightHeadConfig,
-             hist: list | None = None) -> L.LightHead:
-    """A LightHead fitted to features x [N, F] and log gains y [N] (standardised inputs)."""
+             hist: list | None = None, panos: np.ndarray | None = None,
+             log_seen: torch.Tensor | None = None) -> L.LightHead:
+    """A LightHead fitted to features x [N, F] and log gains y [N] (standardised inputs);
+    with ``cfg.rank_weight`` > 0 also the ranking loss over ``panos`` [N] (panorama of each
+    region) and ``log_seen`` [N]."""
+    if cfg.rank_weight > 0 and (panos is None or log_seen is None):
+        raise ValueError("fit_head: rank_weight > 0 needs each region's panorama and seen power")
+    ranker = _PanoSampler(panos, cfg.seed + 2) if cfg.rank_weight > 0 else None
     torch.manual_seed(cfg.seed)
     head = L.LightHead(x.shape[1], cfg.hidden)
     head.mean.copy_(x.mean(0))
@@ -247,6 +303,9 @@ def fit_head(x: torch.Tensor, y: torch.Tensor, cfg: TrainLightHeadConfig,
             gr["lr"] = cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / cfg.steps)))
         idx = torch.from_numpy(rng.integers(len(x), size=min(512, len(x))))
         loss = _huber(head(x[idx]), y[idx])
+        if ranker:
+            ri, seg = ranker.sample()
+            loss = loss + cfg.rank_weight * _rank_loss(head(x[ri]), y[ri], log_seen[ri], seg)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -259,20 +318,39 @@ def fit_head(x: torch.Tensor, y: torch.Tensor, cfg: TrainLightHeadConfig,
 
 
 def fit_heads(x: torch.Tensor, y: torch.Tensor, cfg: TrainLightHeadConfig,
-              hist: list | None = None) -> L.LightHead | L.HeadEnsemble:
+              hist: list | None = None, panos=None, log_seen=None
+              ) -> L.LightHead | L.HeadEnsemble:
     """``fit_head`` with seed ``cfg.seed``, or with ``cfg.ensemble`` > 1 a ``HeadEnsemble``
     of heads fitted with seeds seed … seed + ensemble − 1 (``hist``: the first's curve)."""
-    head = fit_head(x, y, cfg, hist)
+    head = fit_head(x, y, cfg, hist, panos, log_seen)
     if cfg.ensemble <= 1:
         return head
-    return L.HeadEnsemble([head] + [fit_head(x, y, replace(cfg, seed=cfg.seed + k))
+    return L.HeadEnsemble([head] + [fit_head(x, y, replace(cfg, seed=cfg.seed + k), None,
+                                             panos, log_seen)
                                     for k in range(1, cfg.ensemble)])
 
 
+def top1(score: np.ndarray, truth: np.ndarray, panos: np.ndarray) -> tuple[float, int]:
+    """Fraction of panoramas with ≥ 2 regions whose highest ``score`` is the region of
+    highest ``truth`` (per-region log powers), and how many such panoramas there are."""
+    order = np.lexsort((-score, panos))
+    first_pred = order[np.r_[True, panos[order][1:] != panos[order][:-1]]]
+    order = np.lexsort((-truth, panos))
+    first_true = order[np.r_[True, panos[order][1:] != panos[order][:-1]]]
+    _, count = np.unique(panos, return_counts=True)
+    multi = count >= 2
+    if not multi.any():
+        return float("nan"), 0
+    return float(np.mean(first_pred[multi] == first_true[multi])), int(multi.sum())
+
+
 def cross_validate(x, y, groups, names, cfg: TrainLightHeadConfig,
-                   save_dir: Path | None = None) -> list[dict]:
+                   save_dir: Path | None = None, panos: np.ndarray | None = None,
+                   log_seen: torch.Tensor | None = None) -> list[dict]:
     """Leave-one-real-map-out, and quarter-of-skies / quarter-of-rooms-out folds: the mean
-    absolute error of the log gain on the left-out regions, and a constant guess's. Each
+    absolute error of the log gain on the left-out regions, and a constant guess's (with
+    ``panos`` and ``log_seen``: also ``top1``, how often the predicted strongest region of a
+    left-out panorama is the true one, and ``top1_seen`` by seen power alone). Each
     fold fits what ``train`` ships (``fit_heads``: an ensemble when ``cfg.ensemble`` > 1).
     ``save_dir``: each left-out map's fold head is saved there as ``<map stem>.pt`` with its
     card (``maps``: the real maps it was fitted on), for ``lighting_eval --cv-heads``: a
@@ -287,13 +365,23 @@ def cross_validate(x, y, groups, names, cfg: TrainLightHeadConfig,
         te = torch.from_numpy(te)
         if not te.any() or te.all():
             continue
-        head = fit_heads(x[~te], y[~te], cfg)
+        tr = ~te.numpy()
+        head = fit_heads(x[~te], y[~te], cfg, None, panos[tr] if panos is not None else None,
+                         log_seen[~te] if log_seen is not None else None)
         with torch.no_grad():
-            err = (head(x[te]) - y[te])
+            pred = head(x[te])
+        err = pred - y[te]
         out.append({"left_out": name, "regions": int(te.sum()),
                     "mae_log": round(float(err.abs().mean()), 3),
                     "bias_log": round(float(err.mean()), 3),
                     "mae_log_const": round(float((y[te] - y[~te].median()).abs().mean()), 3)})
+        if panos is not None and log_seen is not None:
+            ls, pt = log_seen[te].numpy(), panos[~tr]
+            out[-1]["top1"], out[-1]["panoramas"] = top1(ls + pred.numpy(),
+                                                         ls + y[te].numpy(), pt)
+            out[-1]["top1_seen"] = top1(ls, ls + y[te].numpy(), pt)[0]
+            for k in ("top1", "top1_seen"):
+                out[-1][k] = round(out[-1][k], 3)
         if save_dir is not None and name in set(map(str, names)):
             fold = {"left_out": name, "maps": [str(n) for n in names if str(n) != name],
                     "held_out": list(cfg.held_out) + [name], "cross_validation": [out[-1]],
@@ -315,9 +403,11 @@ def train(cfg: TrainLightHeadConfig, progress: bool = True, command: str = "",
     x = torch.from_numpy(data["features"])
     y = torch.from_numpy(data["targets"])
     t0 = time.perf_counter()
-    cv = cross_validate(x, y, data["groups"], data["names"], cfg, cv_dir) if cfg.cv else []
+    panos, log_seen = data["panos"], torch.from_numpy(data["log_seen"])
+    cv = (cross_validate(x, y, data["groups"], data["names"], cfg, cv_dir, panos, log_seen)
+          if cfg.cv else [])
     hist = []
-    head = fit_heads(x, y, cfg, hist)
+    head = fit_heads(x, y, cfg, hist, panos, log_seen)
     info = {"command": command, "regions": int(len(y)),
             "data_seconds": float(data["seconds"]),
             "train_seconds": round(time.perf_counter() - t0, 1),
@@ -359,6 +449,8 @@ def add_arguments(ap) -> None:
     ap.add_argument("--blur-frac", type=float, default=d.blur_frac,
                     help="fraction of draws blurred as a reconstruction's sky (0: none)")
     ap.add_argument("--weight-decay", type=float, default=d.weight_decay)
+    ap.add_argument("--rank-weight", type=float, default=d.rank_weight,
+                    help="weight of the listwise ranking loss (which region is strongest)")
     ap.add_argument("--no-cv", action="store_true", help="skip the cross-validation")
     ap.add_argument("--cv-out", type=Path, default=None, help="save each left-out map's "
                     "cross-validation head here as <map stem>.pt (for lighting_eval --cv-heads)")
@@ -380,17 +472,20 @@ def run_from_args(args) -> int:
                                threads=args.threads, blur_frac=args.blur_frac,
                                room_bulbs=args.bulbs, room_height=args.room_height,
                                white_core=args.white_core, ensemble=args.ensemble,
-                               scene_probes=args.scene_probes, draws_scene=args.draws_scene)
+                               scene_probes=args.scene_probes, draws_scene=args.draws_scene,
+                               rank_weight=args.rank_weight)
     if args.cv_out is not None and args.no_cv:
         raise ValueError("--cv-out saves the cross-validation's heads; it cannot go with --no-cv")
     info = train(cfg, progress=not args.quiet, command=" ".join(sys.argv), cv_dir=args.cv_out)
     print(f"saved {cfg.out}: {info['regions']} regions, training MAE of log gain "
           f"{info['history'][-1]['train_mae_log']}")
     if info["cross_validation"]:
-        print("| left out | regions | MAE log gain | bias | constant guess |\n|---|---|---|---|---|")
+        print("| left out | regions | MAE log gain | bias | constant guess | panoramas | "
+              "strongest first | by seen power |\n|---|---|---|---|---|---|---|---|")
         for r in info["cross_validation"]:
             print(f"| {r['left_out']} | {r['regions']} | {r['mae_log']} | {r['bias_log']} | "
-                  f"{r['mae_log_const']} |")
+                  f"{r['mae_log_const']} | {r.get('panoramas', '')} | {r.get('top1', '')} | "
+                  f"{r.get('top1_seen', '')} |")
     return 0
 
 
