@@ -257,6 +257,43 @@ def test_head_weights_round_trip_and_errors(tmp_path):
         L.load_head(tmp_path / "bad.pt")
 
 
+def test_context_features_rank_the_regions_by_seen_power():
+    """The last three features: log seen power minus the largest, rank (0 = largest), log
+    share; equal for equal lamps, and a region alone has 0, 0, 0."""
+    img, s = _sun_map(radiance=50.0)
+    d = equirect_directions(64, 128)
+    for axis, cap in (((-0.6, 0.3, 0.4), 6.0), ((0.1, -0.7, 0.3), 4.0)):   # two smaller lamps
+        a = np.asarray(axis) / np.linalg.norm(axis)
+        img[d @ a > np.cos(np.radians(cap))] = 50.0
+    ldr, mask = expose(img, 0.0), np.ones((64, 128))
+    regions = L.clipped_regions(ldr, mask)
+    assert len(regions) == 3
+    ctx = L.region_features(ldr, mask, regions)[:, -3:]
+    seen = np.array([r.seen_power @ LUMA for r in regions])
+    np.testing.assert_allclose(ctx[:, 0], np.log(seen / seen.max()), atol=1e-5)
+    assert list(ctx[:, 1]) == list(np.argsort(np.argsort(-seen)))
+    np.testing.assert_allclose(np.exp(ctx[:, 2]).sum(), 1.0, rtol=1e-5)
+    alone = L.region_features(ldr, mask, regions[:1])[:, -3:]
+    np.testing.assert_allclose(alone, 0.0, atol=1e-6)
+
+
+def test_a_head_fitted_before_the_context_features_reads_its_prefix(tmp_path):
+    """FEATURES only grows at its end: a head of the first N_BASE_FEATURES saves that list,
+    loads, and gives the same output on full feature rows as on its prefix."""
+    torch.manual_seed(0)
+    old = L.LightHead(L.N_BASE_FEATURES)
+    torch.nn.init.normal_(old.mlp[0].weight)
+    x = torch.randn(4, len(L.FEATURES))
+    back = L.load_head(L.save_head(old, tmp_path / "old.pt"))
+    assert back.n_features == L.N_BASE_FEATURES
+    assert torch.equal(back(x), old.eval()(x[:, :L.N_BASE_FEATURES]))
+    ck = torch.load(tmp_path / "old.pt", weights_only=True)
+    ck["features"] = ["log_solid_angle", "something_else"]
+    torch.save(ck, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="other features"):
+        L.load_head(tmp_path / "other.pt")
+
+
 def test_head_ensemble_is_the_mean_log_gain_and_round_trips(tmp_path):
     torch.manual_seed(3)
     heads = [L.LightHead() for _ in range(3)]
@@ -399,6 +436,15 @@ def test_train_light_head_tiny_run(tmp_path):
     fold2 = L.load_head(tmp_path / "cv2" / "yard.pt")          # the folds fit what ships
     assert isinstance(fold2, L.HeadEnsemble) and len(fold2.heads) == 2
     torch.testing.assert_close(fold2.heads[0](x), fold(x))
+    # the CV rows score "strongest region first"; the listwise loss needs the panoramas
+    assert {"top1", "top1_seen", "panoramas"} <= set(info["cross_validation"][0])
+    from comgs_dr.stages.train_light_head import fit_head
+    with pytest.raises(ValueError, match="panorama"):
+        fit_head(x, y, replace(cfg, rank_weight=1.0))
+    ranked = train(replace(cfg, out=tmp_path / "rank.pt", rank_weight=1.0, cv=False),
+                   progress=False, command="test")
+    assert np.isfinite(ranked["history"][-1]["train_huber"])
+    assert L.load_head(tmp_path / "rank.pt").n_features == len(L.FEATURES)
 
 
 def test_scene_probe_is_the_maps_light_inside_the_composition_scene(tmp_path):
