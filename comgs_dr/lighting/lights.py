@@ -16,7 +16,8 @@ cannot:
   observed power first.
 * **Features** (``region_features``, ``FEATURES``): scale-free descriptors of a region and of
   the observed panorama around it (its solid angle, elevation, how fully it is clipped, the
-  brightness, colour and clipping of rings around it, the label, the image resolution).
+  brightness, colour and clipping of rings around it, the label, the image resolution),
+  and since stop 42 its EV-0 power against the panorama's other regions (``light_regions``).
 * **The head** (``LightHead``): a small MLP from the features to log(P_true / P_seen), the
   ratio of the region's true luminance power to what the EV-0 pixels hold, ≥ 0 (softplus:
   clipping only removes light). Trained by ``comgs train-light-head`` on the training maps'
