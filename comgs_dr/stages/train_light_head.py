@@ -250,7 +250,9 @@ def _huber(pred, tgt, delta: float = 0.5):
 def _rank_loss(pred, y, log_seen, seg):
     """Listwise ranking loss: mean over panoramas of −Σ softmax(t) · log softmax(s), with
     s = log seen + pred, t = log seen + y (natural-log powers) over each panorama's regions;
-    ``seg`` [n] the panorama of each region, 0 … B − 1."""
+    ``seg`` [n] the panorama of each region, 0 … B − 1. The segmented log-softmax is written
+    with ``scatter_reduce`` / ``index_add``: torch has none built in (torch_scatter is not a
+    dependency); ``tests/test_lights.py`` checks it against a per-panorama loop."""
     s, t = log_seen + pred, log_seen + y                              # [n]
     b = int(seg.max()) + 1
 
@@ -367,8 +369,8 @@ def cross_validate(x, y, groups, names, cfg: TrainLightHeadConfig,
         te = torch.from_numpy(te)
         if not te.any() or te.all():
             continue
-        tr = ~te.numpy()
-        head = fit_heads(x[~te], y[~te], cfg, None, panos[tr] if panos is not None else None,
+        sel = te.numpy()                                   # the left-out regions, numpy
+        head = fit_heads(x[~te], y[~te], cfg, None, panos[~sel] if panos is not None else None,
                          log_seen[~te] if log_seen is not None else None)
         with torch.no_grad():
             pred = head(x[te])
@@ -378,7 +380,7 @@ def cross_validate(x, y, groups, names, cfg: TrainLightHeadConfig,
                     "bias_log": round(float(err.mean()), 3),
                     "mae_log_const": round(float((y[te] - y[~te].median()).abs().mean()), 3)})
         if panos is not None and log_seen is not None:
-            ls, pt = log_seen[te].numpy(), panos[~tr]
+            ls, pt = log_seen[te].numpy(), panos[sel]
             out[-1]["top1"], out[-1]["panoramas"] = top1(ls + pred.numpy(),
                                                          ls + y[te].numpy(), pt)
             out[-1]["top1_seen"] = top1(ls, ls + y[te].numpy(), pt)[0]
