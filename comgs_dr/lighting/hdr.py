@@ -60,7 +60,7 @@ CLIPPED_SKY_WARN = 0.3     # clipped_sky_fraction above it: the light inside is 
 SEEN_SKY_WARN = 0.25       # seen_sky_fraction below it: the lights above are the completion's guess
 OPEN_SKY_WARN = 0.1        # open sky (a learned background) below it, the upper hemisphere seen:
                            # it is surfels (forward-facing captures 0.018-0.031, views that look
-                           # around 0.65-0.67 of it; README "A forward-facing capture")
+                           # around 0.65-0.67 of it; docs/lighting.md "A forward-facing capture")
 
 
 # ---------------------------------------------------------------------------------------

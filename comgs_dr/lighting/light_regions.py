@@ -3,7 +3,7 @@
 Split from ``lighting.lights`` (which re-exports every name here): a region is a connected
 set of observed pixels clipped at EV 0 (``clipped_regions``), described by ``FEATURES``
 (``region_features``: 27 scale-free descriptors of the region and its surroundings, then 3
-of context against the panorama's other regions, ``_context``; README "Stop 42").
+of context against the panorama's other regions, ``_context``; docs/lighting.md "Stop 42").
 """
 from __future__ import annotations
 

@@ -73,7 +73,7 @@ __all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_reg
 
 MAX_LOG_GAIN = 25.0       # P_true / P_seen ≤ e^25 ≈ 7e10 (a real sun at EV 0: ~1e5)
 TRUST_BRACKETS = 0.25      # add_lights: the brackets' vote on which region holds the power
-                           # (benchmarks/light_ranking.py; README "The brackets' vote")
+                           # (benchmarks/light_ranking.py; docs/lighting.md "The brackets' vote")
 DEFAULT_HEAD = Path(__file__).parent / "weights" / "light_head.pt"
 # The shipped head is fitted on every shared real map; for the maps the benchmarks score as
 # held out (``pano_data.HELD_OUT``) its cross-validation folds are shipped here: <stem>.pt,

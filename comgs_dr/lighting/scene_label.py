@@ -10,7 +10,7 @@ The classifier: L2-regularised, sample-weighted logistic regression on ``FEATURE
 statistics of the observed EV-0 LDR panorama by elevation band, exposure-free but for
 clipping (brightness of the upper bands relative to the whole, their blueness relative to
 the lower band, chroma, clipping, texture, and how much of them is seen). Measured effect,
-held out, against "unknown" and the true labels: README, "The scene label". A linear model on a handful of physical cues rather than a
+held out, against "unknown" and the true labels: docs/lighting.md, "The scene label". A linear model on a handful of physical cues rather than a
 network: it is trained on 8 real maps plus procedural skies and rooms
 (``stages.train_scene_label``) and must not learn the maps. Where it is unsure
 (p(outdoor) within ``margin`` of ½) it answers "unknown", which is what the models were

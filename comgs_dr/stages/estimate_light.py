@@ -81,7 +81,7 @@ class EstimateConfig:
     max_hits: int = 32
     exclude_radius: float = 0.0
     label: str = "auto"             # "auto": classified from the trace (``lighting.
-                                    # scene_label``; README "The scene label"), or "outdoor",
+                                    # scene_label``; docs/lighting.md "The scene label"), or "outdoor",
                                     # "indoor", "unknown"
     evs: tuple = (0.0, -2.5, -5.0)
     oct_res: int = 512

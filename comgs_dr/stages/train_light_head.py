@@ -70,7 +70,7 @@ class TrainLightHeadConfig:
     white_core: bool = False      # training regions as ``clipped_regions(white_core=...)``
     # > 1: save a ``lights.HeadEnsemble`` of heads fitted with seeds seed … seed + k − 1 (the
     # CV folds fit the same ensemble). Single heads' held-out light angle swings with the seed
-    # (31.2° / 35.5° / 34.9° on one data draw, README "Stop 41"); the shipped head is
+    # (31.2° / 35.5° / 34.9° on one data draw, docs/lighting.md "Stop 41"); the shipped head is
     # ``--held-out --ensemble 3`` (all 13 shared maps, seeds 0–2) with the other defaults.
     ensemble: int = 1
     # Per real map, panoramas of the map's light *inside a scene*: path-traced at a random
@@ -96,7 +96,8 @@ class TrainLightHeadConfig:
     # true ones, over 64 panoramas with ≥ 2 regions per step. The Huber loss alone scores each
     # region apart; which region is strongest is what sets the light's direction. Off: with
     # the context features, W = 0.1 / 0.3 gave held-out light angles 24.0° / 24.1° vs 23.8°
-    # and dimmed blender_sunrise's sun (relighting 20.1 / 19.4 vs 20.5 dB; README "Stop 42").
+    # and dimmed blender_sunrise's sun (relighting 20.1 / 19.4 vs 20.5 dB;
+    # docs/lighting.md "Stop 42").
     rank_weight: float = 0.0
     lr: float = 3e-3
     hidden: int = 64
