@@ -25,7 +25,11 @@ mean |log(predicted / true power)| over all regions; top-1 per map (margin 1.5).
 leave-one-map-out from ``NESTED_GRID`` (top-1 on the other maps, ties broken by their log
 error), then scored on the map left out: what choosing a costs when no map is looked at twice.
 
+``--cv-heads CV`` (``train-light-head --cv-out CV``): every map is scored with ``CV/<stem>.pt``,
+the head fitted without it (as ``lighting_eval --cv-heads``).
+
     python benchmarks/light_ranking.py [--maps DIR] [--masks 16] [--seed 0] [--train-maps]
+                                       [--light-head H | --cv-heads CV]
     python benchmarks/light_ranking.py --nested
 """
 from __future__ import annotations
@@ -46,11 +50,11 @@ NESTED_GRID = (0.0, 0.125, 0.25, 0.375, 0.5, 0.625, 0.75, 1.0)
 
 
 def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print,
-                  head_path=None) -> list[dict]:
+                  head_path=None, cv_heads: dict | None = None) -> list[dict]:
     """[{map, regions: [{true, seen, head, net}]}] for panoramas (``res`` × 2·``res``) with
     ≥ 2 clipped regions (luminance powers, EV-0 radiance units); ``head_path``: light-head
     weights (None: the shipped head, or for a held-out map its fold without that map,
-    ``lights.held_out_head``)."""
+    ``lights.held_out_head``); ``cv_heads``: {map stem: weights} used first."""
     import torch
 
     from comgs_dr.core.colorspace import LUMA
@@ -73,7 +77,8 @@ def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print,
     for i, path in enumerate(maps):
         gm, lab = load_eval_map(path, h), C.LABELS[P.label_of(path.stem)]
         # the shipped head saw every shared map: a held-out map gets its fold without it
-        head = fixed if fixed is not None else L.load_head(L.held_out_head(path.stem))
+        head = fixed if fixed is not None else L.load_head(
+            (cv_heads or {}).get(path.stem) or L.held_out_head(path.stem))
         for j in range(masks):
             mk, shift = bank[i * masks + j], int(rng.integers(w))
             if mk["coverage"] < 0.4:
@@ -175,6 +180,8 @@ def main(argv=None):
                     "trained on (in sample) instead of pano_data.HELD_OUT")
     ap.add_argument("--light-head", default=None, help="light-head weights (default: the "
                     "shipped head)")
+    ap.add_argument("--cv-heads", default=None, help="folder of cross-validation light heads "
+                    "(train-light-head --cv-out): each map scored with <stem>.pt")
     ap.add_argument("--nested", action="store_true", help="every map, and the vote's weight "
                     "chosen leave-one-map-out (see the module docstring)")
     a = ap.parse_args(argv)
@@ -182,17 +189,20 @@ def main(argv=None):
         raise SystemExit("--masks must be >= 1")
     if a.nested and a.train_maps:
         raise SystemExit("--nested takes every map; leave out --train-maps")
+    if a.cv_heads is not None and a.light_head is not None:
+        raise SystemExit("--cv-heads replaces --light-head; give one of them")
     import comgs_dr
     comgs_dr.set_variant("llvm_ad_rgb")
     from comgs_dr.data.synthetic import shared_data_dir
     from comgs_dr.lighting import pano_data as P
-    from lighting_eval import list_maps
+    from lighting_eval import cv_head_paths, list_maps
     maps = [p for p in list_maps(a.maps or shared_data_dir() / "hdri")
             if a.nested or (p.stem in P.HELD_OUT) != a.train_maps]
     if not maps:
         raise SystemExit("no map left to evaluate")
+    cv = cv_head_paths(a, maps) if a.cv_heads is not None else None   # before any work
     t0 = time.perf_counter()
-    rows = region_powers(maps, a.masks, a.seed, head_path=a.light_head)
+    rows = region_powers(maps, a.masks, a.seed, head_path=a.light_head, cv_heads=cv)
     if a.json:
         Path(a.json).write_text(json.dumps(rows))
     names = sorted({r["map"] for r in rows})

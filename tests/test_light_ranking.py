@@ -136,3 +136,42 @@ def test_region_powers_finds_both_lamps_and_their_true_order(tmp_path, variant, 
             assert r["head"] >= r["seen"] * (1 - 1e-9)             # the head's gain is ≥ 1
     _, n, _ = b.score(rows, b.predictors()["seen"], 1.5)
     assert n == 2                                             # both panoramas pass the margin
+
+
+def test_region_powers_scores_each_map_with_its_cv_head(tmp_path, variant, monkeypatch):
+    """``--cv-heads``: the map's own fold is the head that predicts (a constant-gain head
+    here: every region gets exactly 5× its EV-0 power), not the shipped one."""
+    import math
+
+    import torch
+
+    from comgs_dr.data import pano_masks
+    from comgs_dr.lighting import lights
+    from comgs_dr.lighting.backends import DEFAULT_WEIGHTS
+    from comgs_dr.lighting.envmap import write_exr
+    if not Path(DEFAULT_WEIGHTS).is_file():
+        pytest.skip("shipped completion weights missing")
+    h, w = 32, 64
+
+    def full_masks(n, hh, ww, seed=0, **_):
+        d = equirect_directions(hh, ww)
+        return [{"alpha": np.ones((hh, ww), np.float32), "normal": (-d).astype(np.float32),
+                 "coverage": 1.0} for _ in range(n)]
+    monkeypatch.setattr(pano_masks, "mask_bank", full_masks)
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    write_exr(tmp_path / "room.exr", _two_lamps(h, w), "equirect")
+    head = lights.LightHead(hidden=8)
+    with torch.no_grad():
+        for p in head.parameters():
+            p.zero_()
+        head.mlp[-1].bias.fill_(math.log(math.expm1(math.log(5.0))))   # softplus⁻¹(log 5)
+    cv = lights.save_head(head, tmp_path / "cv" / "room.pt")
+    b = _bench()
+    rows = b.region_powers([tmp_path / "room.exr"], masks=1, seed=0, res=h,
+                           progress=lambda s: 0, cv_heads={"room": cv})
+    regs = rows[0]["regions"]
+    assert len(regs) == 2
+    for r in regs:
+        assert r["head"] == pytest.approx(5.0 * r["seen"], rel=1e-4)
+    with pytest.raises(SystemExit, match="replaces --light-head"):
+        b.main(["--cv-heads", str(tmp_path / "cv"), "--light-head", str(cv)])
