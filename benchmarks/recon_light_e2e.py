@@ -151,6 +151,9 @@ def main(argv=None):
                     "the shipped head)")
     ap.add_argument("--trust-brackets", type=float, default=None, help="EstimateConfig."
                     "light_trust_brackets (default: its default)")
+    ap.add_argument("--light-head-rows", type=int, default=None, help="EstimateConfig."
+                    "light_head_rows: the head reads at most this many rows (default: its "
+                    "default)")
     ap.add_argument("--no-sun-view", action="store_true", help="do not aim the first sky "
                     "view at the sun (a low sun may then be missed by every view)")
     a = ap.parse_args(argv)
@@ -177,6 +180,8 @@ def main(argv=None):
         for name, (kind, head) in methods.items():
             t0 = time.perf_counter()
             kw = {} if a.trust_brackets is None else {"light_trust_brackets": a.trust_brackets}
+            if a.light_head_rows is not None:
+                kw["light_head_rows"] = a.light_head_rows
             cfg = EstimateConfig(width=2 * a.trace_res, height=a.trace_res, oct_res=64,
                                  label=label, light_head=heads.get(head, head), **kw)
             r = estimate_light(str(run / "point_cloud.ply"), pos, cfg, be[kind])

@@ -309,3 +309,30 @@ def test_cv_heads_are_checked_per_map(tmp_path, capsys):
     with _pytest.raises(SystemExit):
         bench.parse_args(["--maps", str(maps), "--cv-heads", str(cv), "--light-head", "x.pt"])
     assert pano_data.trained_maps(cv / "a.pt") == frozenset({"b"})
+
+
+def _angle_records(per_map: dict) -> list:
+    """Records of two methods: {map: [(ours, base) angle per sample]}, all light-visible."""
+    out = []
+    for m, pairs in per_map.items():
+        for k, (o, b) in enumerate(pairs):
+            for me, ang in (("ours", o), ("base", b)):
+                out.append({"map": m, "mask": k, "method": me, "light_angle_deg": ang,
+                            "light_in_hole": False, "light_clear": True})
+    return out
+
+
+def test_angle_ratio_ci_resamples_maps():
+    le = _bench()
+    same = _angle_records({"a": [(5.0, 10.0), (15.0, 30.0)], "b": [(2.0, 4.0)]})
+    ci = le.angle_ratio_ci(same, "ours", "base")
+    assert ci["ratio"] == pytest.approx(0.5) and ci["maps"] == 2
+    assert ci["lo"] == pytest.approx(0.5) and ci["hi"] == pytest.approx(0.5)   # every map ½
+    mixed = _angle_records({"a": [(5.0, 10.0)] * 3, "b": [(40.0, 20.0)] * 3,
+                            "c": [(1.0, 10.0)] * 3})
+    ci = le.angle_ratio_ci(mixed, "ours", "base", n_boot=4000)
+    assert ci["ratio"] == pytest.approx(46.0 / 40.0)                    # pooled means
+    assert ci["lo"] < ci["ratio"] < ci["hi"]
+    assert ci["lo"] <= 0.55 and ci["hi"] >= 1.5                          # one map flips it
+    hole = [dict(r, light_in_hole=True) for r in same]
+    assert np.isnan(le.angle_ratio_ci(hole, "ours", "base")["ratio"])     # nothing visible
