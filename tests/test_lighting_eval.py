@@ -96,6 +96,8 @@ def test_lighting_eval_smoke(tmp_path, pano_data, variant, capsys):
         d = r["light_dominance"]
         assert d is None or (r["method"].endswith("+lights") and d >= 1.0)
     assert (tmp_path / "fig" / "lighting_eval.png").stat().st_size > 0
+    if out["best_baseline_light_angle"]:                     # per-map bars when comparable
+        assert (tmp_path / "fig" / "lighting_eval_maps.png").stat().st_size > 0
     dump = json.loads((tmp_path / "r.json").read_text(),     # strict JSON: no NaN / Infinity
                       parse_constant=lambda c: pytest.fail(f"non-standard JSON {c}"))
     assert dump["summary"]["net_wins"] == k and len(dump["records"]) == 3 * len(methods)
