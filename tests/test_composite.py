@@ -569,3 +569,61 @@ def test_shadow_region_probes_say_when_fewer_than_asked(caplog):
         n = ps.meta["shadow_region"]["candidates"]
         assert ps.count == min(count, n) and 20 < n <= 100
         assert (f"{n} of the {count} asked" in caplog.text) == short
+
+
+def _tilted_plane(tilt_deg=60.0, n=40, seed=0):
+    """``plane()`` with each surfel turned by up to ``tilt_deg`` about a random horizontal
+    axis: the normals scatter as a briefly trained scene's do, the surface stays flat."""
+    d = plane(n).to_numpy()
+    rng = np.random.default_rng(seed)
+    ang = np.radians(rng.uniform(0.0, tilt_deg, len(d["means"])))
+    phi = rng.uniform(0.0, 2 * np.pi, len(d["means"]))
+    d["quats"] = np.stack([np.cos(ang / 2), np.sin(ang / 2) * np.cos(phi),
+                           np.sin(ang / 2) * np.sin(phi), np.zeros_like(ang)], -1)
+    return SurfelParams.from_numpy(**d)
+
+
+def test_depth_normals_recover_a_flat_ground_from_scattered_surfel_normals():
+    sc = scene_of({"scene": _tilted_plane()}, {"type": "surfel_gbuffer"})
+    buf = group_gbuffer(sc, sc.sensors()[0], [0])
+    ground = np.asarray(buf.weight[0]) > 0.99
+    n_depth, valid = buf.depth_normals(0)
+    tilt = lambda v: np.degrees(np.arccos(np.clip(np.asarray(v)[2], -1, 1)))   # noqa: E731
+    surf, dep = tilt(buf.normal[0])[ground], tilt(n_depth)[ground]
+    assert np.asarray(valid)[ground].mean() > 0.9
+    assert np.median(surf) > 10.0                          # the surfels' own: scattered
+    assert np.median(dep) < 0.4 * np.median(surf), (np.median(dep), np.median(surf))
+    n0, _ = buf.depth_normals(0, radius=0)                 # unsmoothed: still flatter
+    assert np.median(tilt(n0)[ground]) < np.median(surf)
+
+
+def test_shadow_ratio_uses_the_depth_normals_by_default(sphere_over_plane):
+    """On a flat ground whose surfels are tilted, a low sun blocked: S with the depth
+    normals is close to S with the true (flat) normal at the same points; with the
+    surfels' own it scatters. The integrator uses the depth normals unless told
+    ``shadow_normals=surfel``."""
+    low = np.array([0.85, -0.3, 0.43]) / np.linalg.norm([0.85, -0.3, 0.43])   # a 25° sun
+    env = OctEnvmapBase.from_radiance(sun_map(64, direction=low))
+    sc = scene_of({"scene": _tilted_plane(35.0)}, {"type": "surfel_gbuffer"})
+    buf = group_gbuffer(sc, sc.sensors()[0], [0])
+    pix = dr.compress(buf.weight[0] > 0.99)
+    x, n_surf, _ = buf.points(0, pix)
+    n_dep = dr.gather(mi.Vector3f, buf.depth_normals(0)[0], pix)
+    flat = dr.zeros(mi.Vector3f, dr.width(pix)) + mi.Vector3f(0, 0, 1)
+    blocker = ConeBlocker(low, 6.0)
+    S = {k: np.asarray(shadow_ratio(x, v, env, blocker, rays=1024, seed=1))[0]
+         for k, v in (("flat", flat), ("depth", n_dep), ("surfel", n_surf))}
+    err_dep = np.abs(S["depth"] - S["flat"]).mean()
+    err_surf = np.abs(S["surfel"] - S["flat"]).mean()
+    assert err_dep < 0.5 * err_surf, (err_dep, err_surf)
+
+    tmp, scene_p, b = sphere_over_plane
+    shapes = {"scene": _tilted_plane(35.0), "ball": b}
+    default, _ = _render(tmp, shapes, "trace")
+    depth, _ = _render(tmp, shapes, "trace", shadow_normals="depth")
+    surfel, _ = _render(tmp, shapes, "trace", shadow_normals="surfel")
+    np.testing.assert_array_equal(default, depth)
+    assert np.abs(surfel - depth).max() > 0.01
+    with pytest.raises(Exception) as ei:
+        _render(tmp, {"scene": scene_p, "ball": b}, "trace", shadow_normals="mesh")
+    assert "shadow_normals must be depth or surfel" in error_chain_text(ei.value)

@@ -115,6 +115,11 @@ class CompositeBase(AttachedRender):
        - |int|
        - Probes interpolated per point / surfels composited per camera ray / per traced
          occlusion ray (Default: 8 / 32 / 32)
+     * - shadow_normals
+       - |string|
+       - Normals of the scene's shadow receivers: ``depth`` (from the scene layer's rendered
+         depth, ``GroupBuffers.depth_normals``; the surfels' own where it has an edge) or
+         ``surfel`` (Default: depth)
      * - colour_space
        - |string|
        - Space of the radiance fields' colour (Default: srgb)
@@ -163,6 +168,10 @@ class CompositeBase(AttachedRender):
         self.probe_k = int(props.get("probe_k", 8))
         self.max_hits = int(props.get("max_hits", 32))
         self.trace_hits = int(props.get("trace_hits", 32))
+        self.shadow_normals = str(props.get("shadow_normals", "depth"))
+        if self.shadow_normals not in ("depth", "surfel"):
+            raise ValueError(f"comgs_composite: shadow_normals must be depth or surfel, got "
+                             f"{self.shadow_normals!r}")
         self.colour_space = str(props.get("colour_space", "srgb"))
         if self.colour_space not in ("srgb", "linear"):
             raise ValueError(f"comgs_composite: colour_space must be srgb or linear, got "
@@ -277,11 +286,14 @@ class CompositeBase(AttachedRender):
             best, best_d = dr.select(closer, i, best), dr.select(closer, d, best_d)
         vis = st["shadow_vis"] if self.variant == "sop" else st["trace_vis"]
         S = dr.full(mi.Color3f, 1.0, h * w)
+        n_depth = buf.depth_normals(0)[0] if self.shadow_normals == "depth" else None
         for i, o in enumerate(st["objects"]):
             pix = dr.compress((Ws > MIN_WEIGHT) & inside & (best == i))
             if dr.width(pix) == 0:
                 continue
             x, n, _ = buf.points(0, pix)
+            if n_depth is not None:
+                n = dr.gather(mi.Vector3f, n_depth, pix)
             s = shadow_ratio(x, n, o["env"], vis, self.shadow_rays, seed + 7919 * (i + 1))
             dr.scatter(S, s, pix)
         return S
