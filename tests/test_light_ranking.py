@@ -107,22 +107,30 @@ def _two_lamps(h, w):
     return img
 
 
-def test_region_powers_finds_both_lamps_and_their_true_order(tmp_path, variant, monkeypatch):
+def _full_masks(n, hh, ww, seed=0, **_):
+    """A mask bank that sees the whole sphere (stands in for ``pano_masks.mask_bank``)."""
+    d = equirect_directions(hh, ww)
+    return [{"alpha": np.ones((hh, ww), np.float32), "normal": (-d).astype(np.float32),
+             "coverage": 1.0} for _ in range(n)]
+
+
+def _two_lamp_room(tmp_path, monkeypatch, h, w):
+    """``room.exr`` (``_two_lamps``) in tmp_path, fully seen; the benchmark importable."""
     from comgs_dr.data import pano_masks
+    from comgs_dr.lighting.envmap import write_exr
+    monkeypatch.setattr(pano_masks, "mask_bank", _full_masks)
+    monkeypatch.syspath_prepend(str(BENCHMARKS))     # it imports lighting_eval
+    write_exr(tmp_path / "room.exr", _two_lamps(h, w), "equirect")
+    return tmp_path / "room.exr"
+
+
+def test_region_powers_finds_both_lamps_and_their_true_order(tmp_path, variant, monkeypatch):
     from comgs_dr.lighting import lights
     from comgs_dr.lighting.backends import DEFAULT_WEIGHTS
-    from comgs_dr.lighting.envmap import write_exr
     if not (Path(DEFAULT_WEIGHTS).is_file() and lights.DEFAULT_HEAD.is_file()):
         pytest.skip("shipped weights missing")
     h, w = 32, 64
-
-    def full_masks(n, hh, ww, seed=0, **_):
-        d = equirect_directions(hh, ww)
-        return [{"alpha": np.ones((hh, ww), np.float32), "normal": (-d).astype(np.float32),
-                 "coverage": 1.0} for _ in range(n)]
-    monkeypatch.setattr(pano_masks, "mask_bank", full_masks)
-    monkeypatch.syspath_prepend(str(BENCHMARKS))     # it imports lighting_eval
-    write_exr(tmp_path / "room.exr", _two_lamps(h, w), "equirect")
+    _two_lamp_room(tmp_path, monkeypatch, h, w)
     b = _bench()
     rows = b.region_powers([tmp_path / "room.exr"], masks=2, seed=0, res=h, progress=lambda s: 0)
     assert len(rows) == 2
@@ -145,21 +153,12 @@ def test_region_powers_scores_each_map_with_its_cv_head(tmp_path, variant, monke
 
     import torch
 
-    from comgs_dr.data import pano_masks
     from comgs_dr.lighting import lights
     from comgs_dr.lighting.backends import DEFAULT_WEIGHTS
-    from comgs_dr.lighting.envmap import write_exr
     if not Path(DEFAULT_WEIGHTS).is_file():
         pytest.skip("shipped completion weights missing")
     h, w = 32, 64
-
-    def full_masks(n, hh, ww, seed=0, **_):
-        d = equirect_directions(hh, ww)
-        return [{"alpha": np.ones((hh, ww), np.float32), "normal": (-d).astype(np.float32),
-                 "coverage": 1.0} for _ in range(n)]
-    monkeypatch.setattr(pano_masks, "mask_bank", full_masks)
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    write_exr(tmp_path / "room.exr", _two_lamps(h, w), "equirect")
+    _two_lamp_room(tmp_path, monkeypatch, h, w)
     head = lights.LightHead(hidden=8)
     with torch.no_grad():
         for p in head.parameters():
