@@ -6,7 +6,8 @@ Per frame: one trace through every surfel shape gives per-shape-group layers
 W, depth and normal, and per-hit blend weights), so depth compositing is exact per surfel
 and antialiased. The scene layer is multiplied by the shadow ratio S = L_o'/L_o
 (:func:`comgs_dr.shading.shadow.shadow_ratio`, L_i importance-sampled from the map lighting
-the nearest object, O' from the cached shadow-region probes or traced); each object layer
+the nearest object, O' from the cached shadow-region probes or traced, the receivers' normals
+from the scene layer's rendered depth: ``GroupBuffers.depth_normals``); each object layer
 is relit by deferred PBR (:func:`comgs_dr.shading.shade.shade`) under its own map with its
 own probes, whose occlusion includes the other objects'. Materials are blended from the
 object shapes' (traversable) parameters, so ``mi.render`` + ``dr.backward`` give gradients
