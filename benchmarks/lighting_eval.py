@@ -498,19 +498,23 @@ def _stats(rs) -> dict:
     return out
 
 
+def values_by_map(records, method: str, key: str, split: str = "all") -> dict:
+    """{map: [r[key] of ``method``'s ``split`` samples, None left out]}."""
+    out = {}
+    for r in _split([r for r in records if r["method"] == method], split):
+        if r[key] is not None:
+            out.setdefault(r["map"], []).append(float(r[key]))
+    return out
+
+
 def angle_ratio_ci(records, ours: str, base: str, split: str = "visible",
                    n_boot: int = 2000, level: float = 0.9, seed: int = 0) -> dict:
     """Mean dominant-light angle of ``ours`` over ``base`` on the ``split`` samples, with a
     ``level`` bootstrap interval that resamples whole maps (a map's samples share its
     lights, so samples are not independent; with 5 maps the interval is wide, honestly).
     {ratio, lo, hi, maps}; NaNs when there is nothing to compare."""
-    def by_map(me):
-        out = {}
-        for r in _split([r for r in records if r["method"] == me], split):
-            if r["light_angle_deg"] is not None:
-                out.setdefault(r["map"], []).append(float(r["light_angle_deg"]))
-        return out
-    a, b = by_map(ours), by_map(base)
+    a = values_by_map(records, ours, "light_angle_deg", split)
+    b = values_by_map(records, base, "light_angle_deg", split)
     maps = sorted(set(a) & set(b))
     nan = {"ratio": float("nan"), "lo": float("nan"), "hi": float("nan"), "maps": len(maps)}
     if not maps:
@@ -746,13 +750,9 @@ def save_map_figure(records, s: dict, path: Path):
     import matplotlib.pyplot as plt
     maps = sorted({r["map"] for r in records})
 
-    def per_map(me, key, split):
-        vals = []
-        for m in maps:
-            v = [r[key] for r in _split([r for r in records if r["method"] == me
-                                         and r["map"] == m], split) if r[key] is not None]
-            vals.append((float(np.mean(v)) if v else np.nan, len(v)))
-        return vals
+    def per_map(me, key, split):                    # [(mean, count)] in ``maps`` order
+        v = values_by_map(records, me, key, split)
+        return [(float(np.mean(v[m])), len(v[m])) if m in v else (np.nan, 0) for m in maps]
     fig, axes = plt.subplots(1, 2, figsize=(max(6.0, 1.6 * len(maps) + 2), 3.4))
     x = np.arange(len(maps))
     for ax, key, split, label in ((axes[0], "light_angle_deg", "visible",

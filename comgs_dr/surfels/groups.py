@@ -75,18 +75,15 @@ class GroupBuffers:
         D = self.depth[g]
         ok = (self.weight[g] > min_weight) & (D > 0)
 
+        def neighbour(j_ok, j):             # (its point, usable: covered, same surface)
+            j = dr.select(j_ok, j, idx)
+            use = j_ok & dr.gather(mi.Bool, ok, j) \
+                & (dr.abs(dr.gather(mi.Float, D, j) - D) <= rel_tol * D)
+            return dr.select(use, dr.gather(mi.Point3f, x, j), x), use
+
         def axis(step, lo_ok, hi_ok):
-            ia, ib = idx - step, idx + step
-            a_ok = lo_ok & dr.gather(mi.Bool, ok, dr.select(lo_ok, ia, idx))
-            b_ok = hi_ok & dr.gather(mi.Bool, ok, dr.select(hi_ok, ib, idx))
-            xa = self.points(g, dr.select(a_ok, ia, idx))[0]
-            xb = self.points(g, dr.select(b_ok, ib, idx))[0]
-            da = dr.gather(mi.Float, D, dr.select(a_ok, ia, idx))
-            db = dr.gather(mi.Float, D, dr.select(b_ok, ib, idx))
-            a_ok &= dr.abs(da - D) <= rel_tol * D
-            b_ok &= dr.abs(db - D) <= rel_tol * D
-            lo = dr.select(a_ok, xa, x)
-            hi = dr.select(b_ok, xb, x)
+            lo, a_ok = neighbour(lo_ok, idx - step)
+            hi, b_ok = neighbour(hi_ok, idx + step)
             return mi.Vector3f(hi - lo), a_ok | b_ok
 
         tx, ok_x = axis(1, col > 0, col + 1 < w)
