@@ -17,6 +17,10 @@ def _bench():
     return load_benchmark("lighting_eval")
 
 
+def _report():
+    return load_benchmark("lighting_eval_report")
+
+
 def simple_mask_bank(n, h=64, w=128, seed=0, **_):
     """Masks observing everything below a latitude, chosen for the COVERAGES above."""
     d = equirect_directions(h, w)
@@ -132,7 +136,7 @@ def test_light_clear_needs_a_margin_over_the_second_light(second, size, clear):
     assert out["light_in_hole"] is False and out["light_angle_deg"] == pytest.approx(0, abs=1e-3)
     recs = [{"light_in_hole": False, "light_clear": clear}, {"light_in_hole": True,
                                                             "light_clear": True}]
-    assert bench._split(recs, "clear") == ([recs[0]] if clear else [])
+    assert _report()._split(recs, "clear") == ([recs[0]] if clear else [])
 
 
 def test_held_out_selects_the_never_trained_maps(tmp_path, pano_data, variant, capsys):
@@ -155,7 +159,7 @@ def test_held_out_selects_the_never_trained_maps(tmp_path, pano_data, variant, c
     for r in out["records"]:
         assert r["label_requested"] == "auto" and 0.0 <= r["p_outdoor"] <= 1.0
         assert r["label"] == scene_label.load_model().decide(r["p_outdoor"])
-    counts = _bench().label_counts(out["records"])        # one count per sample, per map
+    counts = _report().label_counts(out["records"])        # one count per sample, per map
     n = len({(r["map"], r["mask"], r["draw"]) for r in out["records"]})
     assert sum(sum(c.values()) for c in counts.values()) == n
     assert "### Labels given by the classifier" in capsys.readouterr().out
@@ -236,7 +240,7 @@ def test_dominance_table_splits_by_the_warning():
     from comgs_dr.lighting.lights import DOMINANCE_MARGIN
     rec = lambda d, ang, hole=False, m="ours": {"method": m, "light_in_hole": hole,  # noqa: E731
                                                   "light_angle_deg": ang, "light_dominance": d}
-    rows = _bench().dominance_table(
+    rows = _report().dominance_table(
         [rec(None, 10.0), rec(1.1, 80.0), rec(1.2, 20.0), rec(DOMINANCE_MARGIN, 5.0),
          rec(3.0, 45.0), rec(1.1, 90.0, hole=True), rec(1.1, 90.0, m="mean"),
          rec(1.1, None)], "ours")
@@ -325,7 +329,7 @@ def _angle_records(per_map: dict) -> list:
 
 
 def test_angle_ratio_ci_resamples_maps():
-    le = _bench()
+    le = _report()
     same = _angle_records({"a": [(5.0, 10.0), (15.0, 30.0)], "b": [(2.0, 4.0)]})
     ci = le.angle_ratio_ci(same, "ours", "base")
     assert ci["ratio"] == pytest.approx(0.5) and ci["maps"] == 2
