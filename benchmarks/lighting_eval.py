@@ -67,8 +67,7 @@ The line before it gives the dominant-light angular error with the light outside
 ours vs the best baseline; the line before that, the same where that light is also clearly
 dominant (``clear``); before those, ``light_angle_{visible,clear}_ratio``: ours over the best
 baseline with a 90 % bootstrap interval over maps (``lighting_eval_report.angle_ratio_ci``; the
-issue's target is a
-ratio ≤ ½).
+issue's target is a ratio ≤ ½).
 """
 from __future__ import annotations
 
