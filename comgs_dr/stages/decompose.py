@@ -47,6 +47,7 @@ from comgs_dr.surfels.shape import SurfelShapeBase
 from comgs_dr.train import checkpoint as ck
 from comgs_dr.train import losses as L
 from comgs_dr.train.loop import finish, run_loop, zero_nonfinite_grads
+from comgs_dr.train.material_smoothness import material_smoothness, pairs_from_params
 from comgs_dr.train.run import load_run_dataset, read_run_info
 
 
@@ -75,6 +76,10 @@ class MaterialConfig:
     lambda_ssim: float = 0.2
     lambda_white: float = 0.1           # neutral-light prior on the map's mean colour (not in
                                         # the paper): albedo and light colour are ambiguous
+    lambda_smooth: float = 0.0         # edge-aware material smoothness over the surfels'
+                                        # neighbours (train.material_smoothness; not in the paper)
+    smooth_k: int = 8
+    smooth_sigma: float = 0.1           # step-1 colour difference that unties two neighbours
     init_albedo: float = 0.5
     init_roughness: float = 0.5
     init_metallic: float = 0.0
@@ -141,6 +146,10 @@ class MaterialTrainer:
         clip = self.data.clip_planes()            # relative to the scene, as step 1
         sensors = [v.camera.sensor_dict(**clip) for v in self.views + self.test]
         self.object_size = object_size(params)
+        self._pairs = None
+        if cfg.lambda_smooth > 0:
+            i, j, w = pairs_from_params(params, k=cfg.smooth_k, sigma=cfg.smooth_sigma)
+            self._pairs = (mi.UInt32(i), mi.UInt32(j), mi.Float(w))
         self.timings = {}
         probe_path = None
         if cfg.visibility == "sops":
@@ -240,6 +249,11 @@ class MaterialTrainer:
             lsops = 4.0 * dr.mean(self._sops_w * dr.abs(self.opt[SOPS_KEY].array - self.sops_target.array))
             loss = loss + c.lambda_sops * lsops
             stats["sops"] = float(lsops[0])
+        if self._pairs is not None:
+            ls = material_smoothness(self.opt["surfels.albedo"], self.opt["surfels.roughness"],
+                                     self.opt["surfels.metallic"], *self._pairs)
+            loss = loss + c.lambda_smooth * ls
+            stats["smooth"] = float(ls[0])
         if c.lambda_white > 0:
             lw = self._white_prior()
             loss = loss + c.lambda_white * lw
