@@ -15,6 +15,9 @@ test views are re-rendered under the capture's own map (``relight_run``) and sco
   penalises);
 * ``s``: step 2's training time.
 
+``env_file=capture`` in a variant stands for the run's own capture light (its dataset's
+``meta.json`` map and scale): step 2 under a known light.
+
     python benchmarks/material_priors.py --runs RUN1,RUN2 --work /tmp/matpri
     python benchmarks/material_priors.py --runs RUN --variants "base:,smooth:lambda_smooth=0.1"
 """
@@ -87,12 +90,15 @@ def run_variant(run: Path, work: Path, overrides: dict, iterations: int, rays: i
     for f in run.iterdir():                       # the step-1 state only, never its material/
         if f.is_file():
             shutil.copy(f, work / f.name)
+    meta = json.loads((Path(read_run_info(work)["data"]) / "meta.json").read_text())
+    if overrides.get("env_file") == "capture":              # the dataset's own light
+        overrides = {**overrides, "env_file": meta["envmap"],
+                     "env_scale": float(meta.get("envmap_scale", 1.0))}
     cfg = MaterialConfig(**{"iterations": iterations, "eval_every": iterations,
                             "eval_views": 2, **overrides})
     t0 = time.perf_counter()
     s = train_material(work, None, cfg, progress=False)
     dt = time.perf_counter() - t0
-    meta = json.loads((Path(read_run_info(work)["data"]) / "meta.json").read_text())
     r = relight_run(work, meta["envmap"], envmap_scale=float(meta.get("envmap_scale", 1.0)),
                     rays=rays, out_dir=work / "relight_capture", progress=False)
     return {"psnr": s["psnr_test"], "albedo_psnr": r.get("albedo_psnr", float("nan")),

@@ -34,7 +34,8 @@ from comgs_dr.core.colorspace import display_composite
 from comgs_dr.core.hostarray import to_jit
 from comgs_dr.emitters.octenvmap import OctEnvmapBase
 from comgs_dr.eval.metrics import psnr
-from comgs_dr.lighting.envmap import LOG_RANGE, OctEnvmap
+from comgs_dr.lighting.envmap import LOG_RANGE, OctEnvmap, equirect_to_oct_np, oct_to_equirect_np, \
+    read_envmap_file
 from comgs_dr.shading.shade import SAMPLINGS
 from comgs_dr.shading.visibility import KINDS
 from comgs_dr.sops.bake import bake
@@ -58,6 +59,9 @@ class MaterialConfig:
     sampling: str = "uniform"
     env_res: int = 256                  # sec. 4.1: 256²
     env_init: float = 0.5               # initial constant radiance
+    env_file: str | None = None         # the capture's light when it is known (an HDRI shot
+                                        # on set, a synthetic capture's map): kept fixed
+    env_scale: float = 1.0              # × env_file's radiance
     probe_count: int = 5000             # sec. 4.1: 5k
     probe_res: int = 16                 # sec. 4.1: 16²
     probe_offset: float = 0.01          # × object size (sec. 4.1: 1 %)
@@ -102,6 +106,9 @@ class MaterialConfig:
                              f"got {self.sampling!r}")
         if self.iterations < 1 or self.rays < 1:
             raise ValueError("MaterialConfig: iterations and rays must be ≥ 1")
+        if not (np.isfinite(self.env_scale) and self.env_scale > 0):
+            raise ValueError(f"MaterialConfig.env_scale must be finite and > 0, got "
+                             f"{self.env_scale!r}")
 
 
 CKPT_FORMAT = "comgs_dr.material_checkpoint/2"
@@ -173,8 +180,9 @@ class MaterialTrainer:
         self.opt = mi.ad.Adam(lr=cfg.lr_material)
         for k in MAT_KEYS:
             self.opt[k] = self.mp[k]
-        self.opt[ENV_KEY] = to_jit(mi.Float, np.log(np.full(cfg.env_res ** 2 * 3, cfg.env_init, np.float32)))
-        lrs = {ENV_KEY: cfg.lr_env}
+        self.env_fixed = cfg.env_file is not None
+        self.opt[ENV_KEY] = to_jit(mi.Float, np.log(self._initial_env()).astype(np.float32).ravel())
+        lrs = {ENV_KEY: 0.0 if self.env_fixed else cfg.lr_env}
         self.has_sops = cfg.visibility == "sops"
         if self.has_sops:
             self.opt[SOPS_KEY] = self.mp[SOPS_KEY]
@@ -196,6 +204,26 @@ class MaterialTrainer:
             self.integrator.shading_points(self.scene, j)   # fixed geometry: traced once per view
         self.timings["gbuffers_s"] = time.perf_counter() - t0
         dr.eval()
+
+    def _initial_env(self) -> np.ndarray:
+        """[R, R, 3] octahedral radiance to start from: ``env_init`` everywhere, or the
+        known capture light ``env_file`` (equirect in the package's Z-up convention, as
+        ``relight`` reads it, or our octahedral EXR) × ``env_scale``, resampled to ``env_res``.
+        Under an unknown light the albedo/light colour split is ambiguous (README, step 2);
+        a known light removes the ambiguity, and it stays fixed."""
+        c = self.cfg
+        r = c.env_res
+        if c.env_file is None:
+            return np.full((r, r, 3), c.env_init, np.float64)
+        arr, layout = read_envmap_file(c.env_file)          # NaN/Inf/negative: ValueError
+        if layout == "octahedral":
+            arr = oct_to_equirect_np(arr, 4 * max(r, arr.shape[0]))
+        rad = equirect_to_oct_np(arr, r) * c.env_scale                          # [R, R, 3]
+        lo, hi = np.exp(LOG_RANGE[0]), np.exp(LOG_RANGE[1])
+        if rad.max() > hi:
+            raise ValueError(f"MaterialConfig.env_file {c.env_file}: radiance up to "
+                             f"{rad.max():.3g} exceeds the map's range ({hi:.3g}); lower env_scale")
+        return np.maximum(rad, lo)
 
     # ------------------------------------------------------------------ probes
     def _make_probes(self, params, sensors) -> Path:
@@ -254,7 +282,7 @@ class MaterialTrainer:
                                      self.opt["surfels.metallic"], *self._pairs)
             loss = loss + c.lambda_smooth * ls
             stats["smooth"] = float(ls[0])
-        if c.lambda_white > 0:
+        if c.lambda_white > 0 and not self.env_fixed:
             lw = self._white_prior()
             loss = loss + c.lambda_white * lw
             stats["white"] = float(lw[0])
