@@ -153,6 +153,10 @@ def test_a_known_capture_light_is_kept_and_resolves_the_colour(tiny_run, tmp_pat
                          progress=False)
     want = equirect_to_oct_np(read_envmap_file(sky)[0], 16) * 2.0
     assert np.allclose(tr.env_radiance(), np.maximum(want, np.exp(-16)), rtol=1e-5)
+    assert tr.sampling == "mis"                 # auto: a fixed map is importance-sampled
+    assert MaterialTrainer(run, tmp_path / "m0b", _cfg(env_file=str(sky), sampling="uniform"),
+                           progress=False).sampling == "uniform"      # an explicit choice stays
+    assert MaterialTrainer(run, tmp_path / "m0c", _cfg(), progress=False).sampling == "uniform"
     out = run / "mat_known"
     s = train_material(run, out, _cfg(env_file=str(sky)), progress=False)
     assert np.isfinite(s["psnr_test"])
@@ -179,6 +183,8 @@ def test_env_file_errors_are_clear(tiny_run, tmp_path):
         MaterialConfig(env_scale=0.0)
     with pytest.raises(ValueError, match="env_scale"):
         MaterialConfig(env_scale=float("nan"))
+    with pytest.raises(ValueError, match="sampling"):
+        MaterialConfig(sampling="importance")
     with pytest.raises(ValueError, match="exceeds"):
         MaterialTrainer(run, tmp_path / "m1", _cfg(env_file=str(sky), env_scale=1e12),
                         progress=False)
