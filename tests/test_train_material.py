@@ -156,7 +156,11 @@ def test_a_known_capture_light_is_kept_and_resolves_the_colour(tiny_run, tmp_pat
     assert tr.sampling == "mis"                 # auto: a fixed map is importance-sampled
     assert MaterialTrainer(run, tmp_path / "m0b", _cfg(env_file=str(sky), sampling="uniform"),
                            progress=False).sampling == "uniform"      # an explicit choice stays
-    assert MaterialTrainer(run, tmp_path / "m0c", _cfg(), progress=False).sampling == "uniform"
+    learnt = MaterialTrainer(run, tmp_path / "m0c", _cfg(), progress=False)
+    assert learnt.sampling == "uniform" and learnt.lambda_smooth == 0.0
+    assert tr.lambda_smooth == 0.1                  # auto: the smoothness under a known light
+    assert MaterialTrainer(run, tmp_path / "m0d", _cfg(env_file=str(sky), lambda_smooth=0.0),
+                           progress=False).lambda_smooth == 0.0
     out = run / "mat_known"
     s = train_material(run, out, _cfg(env_file=str(sky)), progress=False)
     assert np.isfinite(s["psnr_test"])
@@ -185,6 +189,8 @@ def test_env_file_errors_are_clear(tiny_run, tmp_path):
         MaterialConfig(env_scale=float("nan"))
     with pytest.raises(ValueError, match="sampling"):
         MaterialConfig(sampling="importance")
+    with pytest.raises(ValueError, match="lambda_smooth"):
+        MaterialConfig(lambda_smooth=-1.0)
     with pytest.raises(ValueError, match="exceeds"):
         MaterialTrainer(run, tmp_path / "m1", _cfg(env_file=str(sky), env_scale=1e12),
                         progress=False)

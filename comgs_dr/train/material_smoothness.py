@@ -15,10 +15,11 @@ over the k nearest neighbours j of each surfel i within ``radius_factor`` × the
 nearest-neighbour distance; c the step-1 base colour (SH band 0, display sRGB), o the
 opacity. Step 2 keeps the geometry fixed, so the graph is built once (scipy's cKDTree)
 and the loss is a gather per step; it is the point-space counterpart of the image-space,
-edge-aware material smoothness common in Gaussian inverse rendering. Off by default
-(``MaterialConfig.lambda_smooth`` = 0): it makes the materials plausible at no cost to the
-fit, but moved the scale-aligned albedo error up on two of three objects
-(``benchmarks/material_priors.py``; its table in the README under step 2).
+edge-aware material smoothness common in Gaussian inverse rendering. Its weight
+(``MaterialConfig.lambda_smooth``) defaults to 0 while step 2 learns the light — there it
+makes the materials plausible at no cost to the fit but moved the scale-aligned albedo
+error up on two of three objects — and to 0.1 under a known capture light, where it gives
+the object its colour (``benchmarks/material_priors.py``; the tables in the README, step 2).
 """
 from __future__ import annotations
 
