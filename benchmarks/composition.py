@@ -8,11 +8,14 @@ the path-traced composites. Prints PSNR / SSIM / frame time per variant, trace/s
 ratio and the edit time (edit.json).
 
     python benchmarks/composition.py --work /tmp/compbench            # ~15-25 min on 2 cores
+    python benchmarks/composition.py --work /tmp/compbench --known-object-light   # + step 2
+                                                  # under each object's capture map
 """
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -50,6 +53,9 @@ def main(argv=None):
     ap.add_argument("--rays", type=int, default=256)
     ap.add_argument("--estimate", action="store_true",
                     help="estimate the lighting at each placement instead of the true map")
+    ap.add_argument("--known-object-light", action="store_true",
+                    help="step 2 of each object under its capture's own map (decompose "
+                         "--env-file), in obj_<name>_known/")
     a = ap.parse_args(argv)
     w = a.work
     w.mkdir(parents=True, exist_ok=True)
@@ -67,19 +73,30 @@ def main(argv=None):
     if not (w / "scene_run" / "point_cloud.ply").is_file():
         times["scene step 1"] = run(["reconstruct", ds / "scene", "--out", w / "scene_run",
                                      "--scene", "--iterations", a.scene_iters, "--quiet"], log)
+    objects = {}
     for n in names:
         r = w / f"obj_{n}"
         if not (r / "point_cloud.ply").is_file():
             times[f"{n} step 1"] = run(["reconstruct", ds / "objects" / n, "--out", r, "--object",
                                         "--iterations", a.object_iters, "--quiet"], log)
-        if not (r / "material" / "probes.npz").is_file():
-            times[f"{n} step 2"] = run(["decompose", r, "--iterations", a.decompose_iters,
-                                        "--quiet"], log)
-    comp = w / ("comp_est" if a.estimate else "comp")
+        cmd, mat = ["decompose", r, "--iterations", a.decompose_iters, "--quiet"], r
+        if a.known_object_light:            # the object's own capture light, kept fixed
+            om = json.loads((ds / "objects" / n / "meta.json").read_text())
+            mat = w / f"obj_{n}_known"
+            mat.mkdir(exist_ok=True)
+            for f in r.iterdir():           # the step-1 state, without its material/
+                if f.is_file() and not (mat / f.name).exists():
+                    shutil.copy(f, mat / f.name)
+            cmd = ["decompose", mat, "--iterations", a.decompose_iters, "--quiet",
+                   "--env-file", om["envmap"], "--env-scale", om.get("envmap_scale", 1.0)]
+        if not (mat / "material" / "probes.npz").is_file():
+            times[f"{n} step 2"] = run(cmd, log)
+        objects[n] = mat
+    comp = w / (("comp_est" if a.estimate else "comp") + ("_known" if a.known_object_light else ""))
     cmd = ["compose", w / "scene_run", "--placement", ds / "transform.json", "--out", comp,
            "--shadow-probes", a.shadow_probes, "--quiet"]
     for n in names:
-        cmd += ["--object", f"{n}={w / f'obj_{n}'}"]
+        cmd += ["--object", f"{n}={objects[n]}"]
     if not a.estimate:
         cmd += ["--env", meta["scene"]["envmap"]]
     times["compose"] = run(cmd, log)
