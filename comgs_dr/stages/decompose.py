@@ -266,8 +266,10 @@ class MaterialTrainer:
     def _apply(self):
         """Optimiser variables -> scene parameters (env.data = exp θ)."""
         r = self.cfg.env_res
-        if not (self.env_fixed and getattr(self, "_env_set", False)):   # a fixed map: once
-            self.mp["env.data"] = mi.TensorXf(dr.exp(self.opt[ENV_KEY]), shape=(r, r, 3))
+        if not (self.env_fixed and getattr(self, "_env_set", False)):   # a fixed map: once,
+            e = dr.exp(self.opt[ENV_KEY])                               # and out of the graph
+            self.mp["env.data"] = mi.TensorXf(dr.detach(e) if self.env_fixed else e,
+                                              shape=(r, r, 3))
             self._env_set = True
         self.mp.update(self.opt)
 
