@@ -69,6 +69,8 @@ class DemoConfig:
     scene_iterations: int = 800
     object_iterations: int = 800
     material_iterations: int = 300
+    object_light: str = "learnt"                # learnt (the general case) | known: step 2
+                                                # under the object's studio map (--env-file)
     probes: int = 2000
     shadow_probes: int = 2000
     rays: int = 128
@@ -80,6 +82,9 @@ class DemoConfig:
     def __post_init__(self):
         """Sizes are checked here, before anything is written (``--res 0`` used to render
         the procedural inputs first)."""
+        if self.object_light not in ("learnt", "known"):
+            raise ValueError(f"DemoConfig.object_light must be learnt or known, got "
+                             f"{self.object_light!r}")
         lows = {"resolution": 8, "sfm_points": 0, "seed": 0, "sky_views": 0, "probe_height": 4}
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
@@ -198,7 +203,8 @@ def run_demo(cfg: DemoConfig) -> dict:
     with _stage("object step 2 (materials, env map, SOPs)", times, prog):
         o2 = train_material(obj_run, None, MaterialConfig(
             iterations=cfg.material_iterations, probe_count=cfg.probes, rays=min(cfg.rays, 64),
-            eval_every=max(cfg.material_iterations // 6, 1), eval_views=4), progress=prog)
+            eval_every=max(cfg.material_iterations // 6, 1), eval_views=4,
+            env_file=str(studio) if cfg.object_light == "known" else None), progress=prog)
 
     estimated = {}
     backend = backends.default_backend()

@@ -30,3 +30,14 @@ def test_make_dataset_scene_cli(tmp_path):
     with pytest.warns(UserWarning, match="without dataset points"):
         p, how = initial_surfels(load_dataset(tmp_path / "b"), cfg, np.random.default_rng(0))
     assert p.count == 300 and "frustum" in how
+
+
+def test_demo_config_checks_the_object_light():
+    """``object_light`` names how step 2 treats the object's capture light; anything else is
+    refused before work, and the CLI offers the same two choices."""
+    from comgs_dr.demo import PRESETS, DemoConfig
+    assert PRESETS["default"].object_light == "learnt"
+    assert DemoConfig(object_light="known").object_light == "known"
+    with pytest.raises(ValueError, match="object_light"):
+        DemoConfig(object_light="studio")
+    assert cli.main(["demo", "--object-light", "studio"]) == 2

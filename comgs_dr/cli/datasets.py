@@ -288,12 +288,16 @@ def _add_demo(sub) -> None:
     p.add_argument("--preset", choices=sorted(DEMO_PRESETS), default="default",
                    help="default: a few minutes on 2 cores; tiny: a smoke test (~1 min)")
     p.add_argument("--res", type=int, help="image side (default: the preset's)")
+    p.add_argument("--object-light", choices=("learnt", "known"), default="learnt",
+                   help="step 2 learns the object's capture light (default) or takes the known "
+                        "studio map (decompose --env-file)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_demo)
 
 
 def _cmd_demo(args) -> int:
-    cfg = dataclasses.replace(DEMO_PRESETS[args.preset], out_dir=args.out, progress=not args.quiet)
+    cfg = dataclasses.replace(DEMO_PRESETS[args.preset], out_dir=args.out, progress=not args.quiet,
+                              object_light=args.object_light)
     if args.res is not None:
         cfg = dataclasses.replace(cfg, resolution=args.res)
     s = run_demo(cfg)
