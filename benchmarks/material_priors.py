@@ -67,19 +67,21 @@ def parse_variants(text: str, cfg_cls) -> dict:
 
 
 def material_stats(ply) -> dict:
+    import mitsuba as mi
+
     from comgs_dr.surfels import load_ply
-    from comgs_dr.train.material_smoothness import pairs_from_params
+    from comgs_dr.train.material_smoothness import material_smoothness, pairs_from_params
     q = load_ply(str(ply))
     d = q.to_numpy()
     op = 1.0 / (1.0 + np.exp(-d["opacity_logit"]))
     s = op > 0.5
     r = d["roughness"][s]
     i, j, w = pairs_from_params(q)
-    per = (np.abs(d["albedo"][i] - d["albedo"][j]).mean(1) + np.abs(d["roughness"][i] - d["roughness"][j])
-           + np.abs(d["metallic"][i] - d["metallic"][j]))
+    nbr = material_smoothness(q.albedo, q.roughness, q.metallic, mi.UInt32(i), mi.UInt32(j),
+                              mi.Float(w))
     return {"metal": float(d["metallic"][s].mean()) if s.any() else float("nan"),
             "rough_iqr": float(np.subtract(*np.percentile(r, [75, 25]))) if s.any() else float("nan"),
-            "nbr_diff": float((w * per).sum() / max(w.sum(), 1e-12)) if len(w) else float("nan")}
+            "nbr_diff": float(nbr[0]) if len(w) else float("nan")}
 
 
 def run_variant(run: Path, work: Path, overrides: dict, iterations: int, rays: int) -> dict:

@@ -124,6 +124,18 @@ def read_envmap_file(path) -> tuple[np.ndarray, str]:
     return arr, layout
 
 
+def oct_radiance_from_file(path, res: int, scale: float = 1.0) -> np.ndarray:
+    """[res, res, 3] octahedral radiance × ``scale`` of an equirect or octahedral map file
+    (``read_envmap_file``); octahedral maps of another size are resampled through a fine
+    equirect. Not clamped to ``LOG_RANGE``."""
+    arr, layout = read_envmap_file(path)
+    if layout == "equirect":
+        return equirect_to_oct_np(arr * scale, res)
+    if arr.shape[0] != res:
+        arr = equirect_to_oct_np(oct_to_equirect_np(arr, 4 * max(res, arr.shape[0])), res)
+    return arr * scale
+
+
 def write_exr(path, img: np.ndarray, layout: str) -> Path:
     """Write a linear RGB float EXR with ``layout`` (and our conventions) in its metadata."""
     conv = ("octahedral: d.xy/|d|_1, lower hemisphere folded, Z-up" if layout == "octahedral"
@@ -166,12 +178,7 @@ class OctEnvmap:
 
     @classmethod
     def from_file(cls, path, res: int = 256, scale: float = 1.0):
-        arr, layout = read_envmap_file(path)
-        if layout == "equirect":
-            return cls.from_equirect(arr, res, scale)
-        if arr.shape[0] != res:     # resample octahedral maps through a fine equirect
-            arr = equirect_to_oct_np(oct_to_equirect_np(arr, 4 * max(res, arr.shape[0])), res)
-        return cls(arr * scale)
+        return cls(oct_radiance_from_file(path, res, scale))
 
     # state -------------------------------------------------------------------------------
     def refresh(self):

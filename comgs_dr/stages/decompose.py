@@ -34,8 +34,7 @@ from comgs_dr.core.colorspace import display_composite
 from comgs_dr.core.hostarray import to_jit
 from comgs_dr.emitters.octenvmap import OctEnvmapBase
 from comgs_dr.eval.metrics import psnr
-from comgs_dr.lighting.envmap import LOG_RANGE, OctEnvmap, equirect_to_oct_np, oct_to_equirect_np, \
-    read_envmap_file
+from comgs_dr.lighting.envmap import LOG_RANGE, OctEnvmap, oct_radiance_from_file
 from comgs_dr.shading.shade import SAMPLINGS
 from comgs_dr.shading.visibility import KINDS
 from comgs_dr.sops.bake import bake
@@ -232,10 +231,7 @@ class MaterialTrainer:
         r = c.env_res
         if c.env_file is None:
             return np.full((r, r, 3), c.env_init, np.float64)
-        arr, layout = read_envmap_file(c.env_file)          # NaN/Inf/negative: ValueError
-        if layout == "octahedral":
-            arr = oct_to_equirect_np(arr, 4 * max(r, arr.shape[0]))
-        rad = equirect_to_oct_np(arr, r) * c.env_scale                          # [R, R, 3]
+        rad = oct_radiance_from_file(c.env_file, r, c.env_scale)   # [R, R, 3]; NaN: ValueError
         lo, hi = np.exp(LOG_RANGE[0]), np.exp(LOG_RANGE[1])
         if rad.max() > hi:
             raise ValueError(f"MaterialConfig.env_file {c.env_file}: radiance up to "
