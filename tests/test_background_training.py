@@ -429,3 +429,23 @@ def test_step1_weighs_the_sky_by_alpha_unless_masks_are_given(sky_scene, tmp_pat
     with caplog.at_level(logging.WARNING, logger="comgs_dr.stages.reconstruct"):
         train_radiance(data, tmp_path / "b", cfg, progress=False)
     assert seen[-1] is None and "transparent pixels" not in caplog.text
+
+
+def test_background_auto_is_decided_from_the_data(sky_scene, trained):
+    """``background='auto'`` (the default): opaque scene photos learn the far field, an
+    object cut out by its alpha keeps the grey level; the run reports the choice."""
+    from comgs_dr.stages.reconstruct import resolve_background
+    scene = load_dataset(sky_scene / "scene")
+    assert RadianceConfig().background == "auto"
+    cfg, why = resolve_background(RadianceConfig.from_preset("scene"), scene)
+    assert cfg.background == "env" and why.startswith("env: scene preset")
+    cfg, why = resolve_background(RadianceConfig.from_preset("scene", background="grey"), scene)
+    assert cfg.background == "grey" and "given" in why
+    import dataclasses
+    views = [dataclasses.replace(v, mask=np.zeros(v.image.shape[:2], np.float32))
+             for v in scene.train]                      # the same photos, all transparent
+    cut = dataclasses.replace(scene, train=views)
+    cfg, why = resolve_background(RadianceConfig.from_preset("scene"), cut)
+    assert cfg.background == "grey" and "100.0% transparent" in why
+    run, summary = trained
+    assert summary["background"] == "env (given)"

@@ -87,3 +87,36 @@ def test_write_log_is_strict_json_with_nan_as_null(tmp_path):
     txt = (tmp_path / LOG_NAME).read_text()
     d = json.loads(txt, parse_constant=lambda c: pytest.fail(f"non-strict constant {c}"))
     assert d == {"summary": {"psnr_test": None}, "log": [{"loss": None, "psnr": 20.5}]}
+
+
+def test_restore_off_keeps_the_final_state_and_reports_it():
+    curve = {3: 25.0, 6: 28.0, 9: 26.0, 12: 22.0}
+    tr, best = _FakeTrainer(curve), BestState(tolerance_db=0.5)
+    run_loop(tr, _Cfg(), "test", progress=False, best=best)
+    with pytest.warns(UserWarning, match="restore off"):
+        note = best.settle(tr, curve[12], tr.iteration, "test", restore=False)
+    assert tr.restored is None and tr.value == 12.0
+    assert note["restored"] is False and note["best_iteration"] == 6
+
+
+def test_best_state_survives_a_checkpoint(tmp_path):
+    """What a checkpoint keeps of the best state restores it after a resume."""
+    import numpy as np
+
+    from comgs_dr.train import checkpoint as ck
+
+    class _Opt:
+        state = {}
+    best = BestState()
+    best.psnr, best.iteration, best.state = 28.5, 1500, {"means": np.arange(6.0).reshape(2, 3)}
+    arrays, record = best.to_checkpoint()
+    ck.save_checkpoint(tmp_path / "c.npz", "fmt/1", {"means": np.zeros((2, 3)), **arrays},
+                       _Opt(), {}, {"best": record})
+    loaded, _, state = ck.load_checkpoint(tmp_path / "c.npz", "fmt/1")
+    again = BestState()
+    again.from_checkpoint(loaded, state["best"])
+    assert again.psnr == 28.5 and again.iteration == 1500
+    np.testing.assert_array_equal(again.state["means"], best.state["means"])
+    empty = BestState()
+    empty.from_checkpoint(loaded, None)                   # a run that never evaluated
+    assert empty.state is None

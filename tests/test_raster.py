@@ -30,7 +30,9 @@ GB = ("color", "weight", "depth", "normal")       # G-buffers compared below
 
 # ------------------------------------------------------------------ helpers
 def _scenes(surfels, sensor, **kw):
-    """{'trace': scene, 'raster': scene}: the same surfels and sensor, one per method."""
+    """{'trace': scene, 'raster': scene}: the same surfels and sensor, one per method (one
+    pass of K hits unless ``max_passes`` is given: the hit lists compared are one walk's)."""
+    kw.setdefault("max_passes", 1)
     return {m: gbuffer_scene(surfels, sensor, method=m, **kw) for m in ("trace", "raster")}
 
 
@@ -219,7 +221,7 @@ def random_scene():
     rng = np.random.default_rng(0)
     params = random_surfels(rng, n=300, scale=(0.03, 0.15), opacity=(-2.0, 4.0))
     sensor = cameras.perspective([0.4, -2.5, 0.6], res=48, fov=40)
-    return _scenes(params, sensor, max_hits=16), 16
+    return _scenes(params, sensor, max_hits=16, max_passes=1), 16
 
 
 @pytest.fixture(scope="module")
@@ -233,7 +235,7 @@ def mesh_scene():
     p["opacity_logit"] = rng.uniform(-2.0, 4.0, 600).astype(np.float32)    # α 0.12 .. 0.98
     p["sh"] = p["sh"] + rng.normal(0, 0.3, p["sh"].shape).astype(np.float32)
     sensor = cameras.perspective([0.3, -3.0, 0.8], res=48, fov=45)
-    return _scenes(SurfelParams.from_numpy(**p), sensor, max_hits=16), 16
+    return _scenes(SurfelParams.from_numpy(**p), sensor, max_hits=16, max_passes=1), 16
 
 
 def _unexplained(kinds):
@@ -303,6 +305,30 @@ def test_gbuffers_match_tracer(which, request):
     for m, out in (("trace", h.trace_out), ("raster", h.raster_out)):
         np.testing.assert_allclose(np.array(out["weight"]).reshape(same.shape),
                                    img[m]["weight"][..., 0], atol=1e-6)
+
+
+def test_every_hit_composited_by_both_methods(random_scene):
+    """With several passes (the default) a small K no longer truncates: trace and raster
+    composite every hit up to T_MIN, and both equal one pass with a K large enough."""
+    scenes, _ = random_scene
+    params = composite.surfel_shapes(scenes["trace"], "test")[0].params
+    sensor = scenes["trace"].sensors()[0]
+    imgs = {}
+    for m in ("trace", "raster"):
+        for K, passes in ((2, 64), (128, 1)):
+            sc = gbuffer_scene(params, sensor, method=m, max_hits=K, max_passes=passes)
+            imgs[m, K] = _render(sc)
+            assert sc.integrator().stopped_early == 0.0
+    short = gbuffer_scene(params, sensor, method="raster", max_hits=2, max_passes=1)
+    w_short = _render(short)["weight"]
+    assert short.integrator().stopped_early > 0.05
+    for k in GB:
+        for m in ("trace", "raster"):
+            np.testing.assert_allclose(imgs[m, 2][k], imgs[m, 128][k], atol=2e-5, err_msg=(m, k))
+        d = np.abs(imgs["trace", 2][k] - imgs["raster", 2][k]).max(-1)
+        mean_tol, max_tol = GB_TOL["random_scene"][k]
+        assert d.mean() <= mean_tol and d.max() <= max_tol, (k, d.mean(), d.max())
+    assert (imgs["raster", 2]["weight"] - w_short).max() > 0.05
 
 
 # -------------------------------------------------------------- 2. gradients
@@ -631,12 +657,12 @@ def test_raster_needs_a_pinhole_sensor():
 def raster_calls(monkeypatch):
     """Counts the integrator's calls of raster.find_hits."""
     calls = []
-    find_hits = raster.find_hits
+    find_hits = raster.find_all_hits
 
     def counting(*args, **kw):
         calls.append(1)
         return find_hits(*args, **kw)
-    monkeypatch.setattr(raster, "find_hits", counting)
+    monkeypatch.setattr(raster, "find_all_hits", counting)
     return calls
 
 

@@ -14,7 +14,6 @@ import mitsuba as mi
 
 from comgs_dr.core.variant import mitsuba_ad_base, variant_class
 from comgs_dr.surfels import composite
-from comgs_dr.surfels import composite as compositing
 from comgs_dr.surfels import raster
 
 METHODS = ("auto", "trace", "raster")
@@ -47,7 +46,15 @@ class SurfelGBufferBase:
 
      * - max_hits
        - |int|
-       - K, the largest number of surfels composited per ray (Default: 32)
+       - K, the hit-buffer slots per ray and pass (Default: 32)
+     * - max_passes
+       - |int|
+       - Rays whose K slots are full while their transmittance is still
+         ≥ 1e-4 are walked again for the next K hits behind, up to this many passes, so
+         every surfel on the ray is composited as in 2DGS (Default: 16; 1: only the
+         first K hits, the rest dropped); traced rays continue from their last hit the
+         same way. The share of rays still open after the last pass is kept in
+         ``stopped_early``
      * - epsilon
        - |float|
        - Origin advance past each hit in scene units; ≤ 0 picks 1/200 of the
@@ -101,6 +108,11 @@ class SurfelGBufferBase:
         self.max_hits = int(props.get("max_hits", 32))
         if not 1 <= self.max_hits <= 1024:
             raise ValueError(f"surfel_gbuffer: 'max_hits' must be in 1..1024, got {self.max_hits}")
+        self.max_passes = int(props.get("max_passes", 16))
+        if not 1 <= self.max_passes <= 256:
+            raise ValueError(f"surfel_gbuffer: 'max_passes' must be in 1..256, got "
+                             f"{self.max_passes}")
+        self.stopped_early = 0.0     # share of rays still open after the last render's walk
         self.epsilon = float(props.get("epsilon", -1.0))
         self.targets = parse_targets(str(props.get("targets", "all")))
         self.jitter = bool(props.get("jitter", False))
@@ -148,12 +160,16 @@ class SurfelGBufferBase:
             bg = self.background if env is None else _env_radiance(env, ray, active)
             ctx = self._raster_ctx
             if ctx is not None and dr.width(ctx[1].x) == dr.width(ray.d):
-                hits = raster.find_hits(shapes, ctx[0], ray, ctx[1], self.max_hits, active)
-                out, acc, T = compositing.composite_hits(shapes, ray, hits, self.targets, bg)
+                hits, still_open = raster.find_all_hits(shapes, ctx[0], ray, ctx[1], self.max_hits,
+                                                        active, self.max_passes)
+                self.stopped_early = float(still_open.mean()) if still_open.size else 0.0
+                out, acc, T = composite.composite_hits(shapes, ray, hits, self.targets, bg)
             else:
                 eps = self.epsilon if self.epsilon > 0 else composite.auto_epsilon(scene, shapes)
-                hits, out, acc, T = compositing.trace_composite(
-                    scene, shapes, ray, self.max_hits, eps, self.targets, bg, active)
+                hits, out, acc, T = composite.trace_composite(
+                    scene, shapes, ray, self.max_hits, eps, self.targets, bg, active,
+                    self.max_passes)
+                self.stopped_early = float(hits.still_open.mean()) if hits.still_open.size else 0.0
             L = out.get("color", mi.Color3f(0.0))
             state = (hits, acc, T, bg)
             self._primal_cache = (self._cache_key, state) if self._cache_key is not None else None
@@ -161,14 +177,14 @@ class SurfelGBufferBase:
         hits, acc, T, bg = state_in
         if mode == dr.ADMode.Backward:
             grads = self._unflatten(δL, δaovs)
-            compositing.composite_adjoint(mode, shapes, ray, hits, acc, T, self.targets,
+            composite.composite_adjoint(mode, shapes, ray, hits, acc, T, self.targets,
                                           grads, bg)
             if env is not None and "color" in grads:        # ∂(T_final · L_e)/∂(emitter)
                 with dr.resume_grad():
                     obj = dr.sum(grads["color"] * T * _env_radiance(env, ray, active, ad=True))
                     dr.backward_from(obj, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
             return mi.Spectrum(0.0), acc["weight"] > 0, [], None
-        tan = compositing.composite_adjoint(mode, shapes, ray, hits, acc, T, self.targets,
+        tan = composite.composite_adjoint(mode, shapes, ray, hits, acc, T, self.targets,
                                             None, bg)
         if env is not None and "color" in tan:
             with dr.resume_grad():

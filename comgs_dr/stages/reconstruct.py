@@ -93,7 +93,8 @@ class RadianceConfig:
     lambda_d2n: float = 0.2
     lambda_mask: float = 0.05             # object preset only
     random_background: bool = True        # datasets with alpha: a random grey behind each step
-    background: str = "grey"              # grey | env: a learned sky / far field (train.background)
+    background: str = "auto"              # auto | grey | env: a learned sky / far field
+                                          # (train.background); auto: resolve_background
     env_resolution: int = 64              # octahedral texels per side of the env background
     lr_env: float = 0.01
     # None: constant; else lr_env decays exponentially to it. 0.001 cleaned a smooth sky
@@ -120,6 +121,8 @@ class RadianceConfig:
     checkpoint_every_s: float | None = 300.0   # also by wall time; SIGINT/SIGTERM write one too
     seed: int = 0
     time_limit_s: float | None = None     # stop early (after a checkpoint) when exceeded
+    restore_best: bool = True             # end on the best evaluated state if the final one
+                                          # fell > 0.5 dB below it (reported as ``diverged``)
 
     def __post_init__(self):
         if self.preset not in PRESETS:
@@ -128,8 +131,8 @@ class RadianceConfig:
             raise ValueError("RadianceConfig.iterations must be ≥ 1")
         if self.sh_degree not in (0, 1, 2, 3):
             raise ValueError("RadianceConfig.sh_degree must be 0..3")
-        if self.background not in ("grey", "env"):
-            raise ValueError(f"RadianceConfig.background must be 'grey' or 'env', got "
+        if self.background not in ("auto", "grey", "env"):
+            raise ValueError(f"RadianceConfig.background must be 'auto', 'grey' or 'env', got "
                              f"{self.background!r}")
         if self.env_resolution < 4:
             raise ValueError("RadianceConfig.env_resolution must be >= 4")
@@ -193,18 +196,21 @@ class Trainer:
     """Owns the scene, the optimiser and the density controller of one run."""
 
     def __init__(self, data, run_dir, cfg: RadianceConfig, progress: bool = True):
+        cfg, self.background_reason = resolve_background(cfg, data)
         self.data, self.cfg, self.progress = data, cfg, progress
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.rng = np.random.default_rng(cfg.seed)
         self.extent = max(float(data.bounds[1]), 1e-6)
         resumed = ck.load_checkpoint(self.run_dir / ck.CKPT_NAME, CKPT_FORMAT)
+        self.best = BestState()
         if resumed is not None:
             arrays, moments, state = resumed
             try:
                 params = SurfelParams.from_numpy(**{k: arrays[k] for k in field_names()})
                 self.iteration, self.log = int(state["iteration"]), list(state["log"])
                 self.elapsed, self.init_desc = float(state["elapsed"]), state["init"]
+                self.best.from_checkpoint(arrays, state.get("best"))
                 if "rng_state" in state:        # the stream continues exactly where it was
                     self.rng.bit_generator.state = state["rng_state"]
                 else:                           # checkpoints of older versions
@@ -379,6 +385,7 @@ class Trainer:
         finally:
             self.integ.background = self.background
         nan_grads = self._guard_gradients()
+        hit_stats = self._hit_stats()
         gm = np.asarray(dr.grad(self.opt["surfels.means"]))           # [3, N]
         cam = np.asarray(self.views[i].camera.to_world)[:3, 3]
         tan_half = math.tan(math.radians(self.views[i].camera.fov_x_deg) / 2)
@@ -403,6 +410,7 @@ class Trainer:
         c_img = np.asarray(bufs["color"])
         stats["psnr_train"] = psnr(c_img, np.asarray(self._target(i, bg)))
         stats["nan_grads"] = nan_grads
+        stats.update(hit_stats)
         it = self.iteration
         if self.density.due(it, self.run_fraction()):
             new, counts = self.density.densify_and_prune(self.params(), self.opt,
@@ -414,6 +422,37 @@ class Trainer:
             self.mp["surfels.opacity_logit"] = new.opacity_logit
             self.mp.update(self.opt)
         return stats
+
+    def _hit_stats(self) -> dict:
+        """Instruments of this step's render (from the integrator's cached primal state):
+        ``open_frac``, the share of pixels whose transmittance after the last composited
+        hit is still above 1e-3 while the hit buffer is full (compositing stopped early:
+        what lies behind got no gradient and the background showed through), and
+        ``hits_mean``, the mean number of composited hits per pixel."""
+        cache = getattr(self.integ, "_primal_cache", None)
+        if cache is None:
+            return {}
+        hits, _, T, _ = cache[1]
+        count, T = np.asarray(hits.count), np.asarray(T)
+        return {"open_frac": float(np.mean((count >= hits.K) & (T > 1e-3))),
+                "hits_mean": float(count.mean()), "hits_max": int(count.max(initial=0)),
+                "stopped_early": float(self.integ.stopped_early)}
+
+    def diagnostics(self) -> dict:
+        """Surfel statistics logged with every record: the share of surfels whose largest σ
+        sits at the cap (``sigma_cap_frac``), the opacity histogram (shares below 0.05,
+        below 0.5, above 0.9) and the mean Adam second moment of the opacity logits."""
+        p = self.params()
+        ls = np.asarray(dr.detach(p.log_scales)).reshape(2, -1).max(0)
+        cap = math.log(self.cfg.max_scale_frac * self.extent)
+        op = 1.0 / (1.0 + np.exp(-np.asarray(dr.detach(p.opacity_logit))))
+        out = {"sigma_cap_frac": float(np.mean(ls >= cap - 1e-3)),
+               "opacity_lt_005": float(np.mean(op < 0.05)), "opacity_lt_05": float(np.mean(op < 0.5)),
+               "opacity_gt_09": float(np.mean(op > 0.9))}
+        st = self.opt.state.get("surfels.opacity_logit")    # (value, promoted, lr, (t, m, v))
+        if st is not None and st[3] is not None and st[3][2] is not None:
+            out["adam_v_opacity"] = float(np.mean(np.asarray(st[3][2])))
+        return out
 
     def _guard_gradients(self) -> int:
         """Replace non-finite gradients by 0 (counted, logged) so one bad ray cannot poison Adam."""
@@ -487,15 +526,35 @@ class Trainer:
 
     def checkpoint(self):
         n = self.params().count
+        best_arrays, best_record = self.best.to_checkpoint()
         ck.save_checkpoint(
-            self.checkpoint_path, CKPT_FORMAT, self.snapshot(), self.opt,
+            self.checkpoint_path, CKPT_FORMAT, {**self.snapshot(), **best_arrays}, self.opt,
             PARAM_KEYS, {"iteration": self.iteration, "log": self.log, "elapsed": self.elapsed,
                          "init": self.init_desc, "rng_state": self.rng.bit_generator.state,
-                         "config": dataclasses.asdict(self.cfg)},
+                         "best": best_record, "config": dataclasses.asdict(self.cfg)},
             to_numpy=lambda f, v: field_to_numpy(f, v, n))
 
     def log_fields(self) -> dict:
-        return {"surfels": self.params().count}
+        return {"surfels": self.params().count, **self.diagnostics()}
+
+
+def resolve_background(cfg: RadianceConfig, data) -> tuple[RadianceConfig, str]:
+    """``background='auto'`` decided from the data: (config with 'grey' or 'env', reason).
+
+    A capture whose photos are opaque sees past the reconstructed geometry wherever a view
+    looks at the horizon, the sky or far walls; with a grey background those pixels render
+    black or grey and the near surfels are bent to explain them. So: opaque training
+    images of the scene preset learn the far field (``env``); images with transparent
+    pixels (an object cut out by its alpha) show nothing behind and keep the grey level.
+    """
+    if cfg.background != "auto":
+        return cfg, f"{cfg.background} (given)"
+    clear = transparent_fraction(data.train)
+    if cfg.preset == "scene" and clear <= 0.01:
+        why = f"env: scene preset, opaque photos ({100 * clear:.1f}% transparent pixels)"
+        return dataclasses.replace(cfg, background="env"), why
+    why = (f"grey: {cfg.preset} preset, {100 * clear:.1f}% transparent training pixels")
+    return dataclasses.replace(cfg, background="grey"), why
 
 
 def transparent_fraction(views) -> float:
@@ -509,11 +568,11 @@ def train_radiance(data, run_dir, cfg: RadianceConfig, progress: bool = True) ->
     """Run (or resume) step 1; writes point_cloud.ply, train_log.json, psnr_vs_time.png."""
     tr = Trainer(data, run_dir, cfg, progress)
     run_dir = Path(run_dir)
-    best = BestState()
-    stopped_early = run_loop(tr, cfg, "step 1", progress, log_dir=run_dir, best=best,
+    stopped_early = run_loop(tr, cfg, "step 1", progress, log_dir=run_dir, best=tr.best,
                              jsonl_dir=run_dir, stage="reconstruct")
     final = tr.evaluate(cfg.eval_views)
-    diverged = best.settle(tr, final["psnr_select"], tr.iteration, "step 1")   # summary only
+    diverged = tr.best.settle(tr, final["psnr_select"], tr.iteration, "step 1",
+                              restore=cfg.restore_best)
     final = tr.evaluate()
     save_ply(tr.params(), str(run_dir / "point_cloud.ply"))
     if tr.env:
@@ -523,6 +582,7 @@ def train_radiance(data, run_dir, cfg: RadianceConfig, progress: bool = True) ->
                                           if tr.alpha_masks else None)
         bgenv.save(run_dir, np.array(tr.mp[bgenv.KEY]), obs, clipped)
     summary = {"iterations": tr.iteration, "train_seconds": tr.elapsed, "surfels": tr.params().count,
-               "init": tr.init_desc, "stopped_early": stopped_early, "diverged": diverged, **final,
+               "init": tr.init_desc, "background": tr.background_reason,
+               "stopped_early": stopped_early, "diverged": diverged, **final,
                "config": dataclasses.asdict(cfg)}
     return finish(tr, run_dir, summary, stage="reconstruct")

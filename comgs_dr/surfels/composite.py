@@ -29,6 +29,9 @@ import dataclasses
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
+
+from comgs_dr.core.hostarray import to_jit
 
 from comgs_dr.surfels import kernel as Kn
 from comgs_dr.surfels.shape import ensure_proxies, is_surfel_shape
@@ -134,11 +137,14 @@ def _zero(name, R):
 
 @dataclasses.dataclass
 class HitBuffer:
-    """Up to K ordered surfel hits per ray: ``ids``/``slots`` flat [R*K], ``count`` [R]."""
+    """Up to K ordered surfel hits per ray: ``ids``/``slots`` flat [R*K], ``count`` [R];
+    ``still_open`` ([R] bool numpy or None): rays whose compositing stopped at the last
+    slot while their transmittance was still ≥ ``T_MIN``."""
     ids: mi.UInt32
     slots: mi.UInt32
     count: mi.UInt32
     K: int
+    still_open: object = None
 
 
 def surfel_values(shapes, slot, index, ray, active, names, mode=dr.ReduceMode.Auto):
@@ -192,56 +198,94 @@ def finish(acc: dict, targets, T_final, background=0.0) -> dict:
     return out
 
 
-def trace_composite(scene, shapes, ray, K: int, eps: float, targets, background=0.0, active=True):
+def trace_composite(scene, shapes, ray, K: int, eps: float, targets, background=0.0, active=True,
+                    max_passes: int = 1):
     """Primal pass: hit buffer + accumulated buffers, no AD.
 
-    Returns (HitBuffer, outputs {target: value}, acc {base buffer: value}, T_final).
+    Each pass traces up to K hits per ray; rays whose K slots are full while still open
+    (T ≥ ``T_MIN``) are traced on from their last hit for up to ``max_passes`` passes, so
+    every surfel on the ray is composited (1: only the first K, as before).
+    Returns (HitBuffer with K · passes slots, outputs {target: value}, acc {base buffer:
+    value}, T_final); ``HitBuffer.still_open`` holds the rays left open ([R] bool numpy).
     """
     names = accumulated(targets)
     ensure_proxies(scene, shapes)
     with dr.suspend_grad():
         ray = mi.Ray3f(dr.detach(ray))
-        R = dr.width(ray.d)
-        rid = dr.arange(mi.UInt32, R)
-        ids = dr.full(mi.UInt32, INVALID, R * K)
-        slots = dr.zeros(mi.UInt32, R * K)
-        ptrs = [mi.ShapePtr(s) for s in shapes]
-        o_mag = dr.max(dr.abs(ray.o))                                       # [R] (per ray)
-        max_iter = 8 * K + 16   # guards against a ray stuck on degenerate geometry
-
-        def cond(act, *_):
-            return act
-
-        def body(act, it, count, T, t_acc, acc):
-            r = mi.Ray3f(dr.fma(ray.d, t_acc, ray.o), ray.d, ray.maxt - t_acc, ray.time, ray.wavelengths)
-            pi = scene.ray_intersect_preliminary(r, coherent=False, active=act)
-            act = act & pi.is_valid()
-            index = pi.prim_index // 2
-            slot = mi.UInt32(0)
-            for j in range(1, len(ptrs)):
-                slot = dr.select(pi.shape == ptrs[j], j, slot)
-            smp, vals = surfel_values(shapes, slot, index, ray, act, names)
-            keep = act & smp.valid
-            pos = rid * K + count
-            dr.scatter(ids, index, pos, keep)
-            dr.scatter(slots, slot, pos, keep)
-            w = dr.select(keep, T * smp.alpha, 0.0)                 # T_i α_i
-            acc = {k: dr.fma(vals[k], w, acc[k]) for k in names}
-            count = dr.select(keep, count + 1, count)
-            T = dr.select(keep, T * (1.0 - smp.alpha), T)
-            # advance past the hit: ε, but at least ~4 float32 ulps of the new origin
-            step = dr.maximum(eps, (o_mag + t_acc + pi.t) * ULP_STEP)
-            t_acc = dr.select(act, t_acc + pi.t + step, t_acc)
-            it = it + 1
-            act = act & (count < K) & (T >= Kn.T_MIN) & (it < max_iter)
-            return act, it, count, T, t_acc, acc
-
-        state = (mi.Bool(active) & (dr.zeros(mi.Bool, R) | True), mi.UInt32(0), dr.zeros(mi.UInt32, R),
-                 dr.full(mi.Float, 1.0, R), dr.zeros(mi.Float, R), {k: _zero(k, R) for k in names})
-        _, _, count, T, _, acc = dr.while_loop(state, cond, body, label="surfel trace+composite")
-        dr.eval(ids, slots, count, T, acc)
+        R = dr.width(ray)            # (an orthographic camera's d is one literal: width 1)
+        act = mi.Bool(active) & (dr.zeros(mi.Bool, R) | True)
+        state = (dr.full(mi.Float, 1.0, R), dr.zeros(mi.Float, R), {k: _zero(k, R) for k in names})
+        ids, slots, count = [], [], np.zeros(R, np.int64)
+        for p in range(max(1, max_passes)):
+            pids, pslots, pcount, T, t_acc, acc, full = _trace_pass(scene, shapes, ray, K, eps,
+                                                                    names, act, state)
+            c = np.asarray(pcount)
+            ids.append(np.asarray(pids).reshape(R, K))
+            slots.append(np.asarray(pslots).reshape(R, K))
+            count += c
+            open_ = np.asarray(full) & (np.asarray(T) >= Kn.T_MIN)
+            state = (T, t_acc, acc)
+            if not open_.any():
+                break
+            act = to_jit(mi.Bool, open_)
+        P = len(ids)
+        hits = HitBuffer(ids=to_jit(mi.UInt32, np.concatenate(ids, 1).ravel()),
+                         slots=to_jit(mi.UInt32, np.concatenate(slots, 1).ravel()),
+                         count=to_jit(mi.UInt32, count.astype(np.uint32)), K=P * K,
+                         still_open=open_)
         out = finish(acc, targets, T, background)
-    return HitBuffer(ids=ids, slots=slots, count=count, K=K), out, acc, T
+    return hits, out, acc, T
+
+
+def _trace_pass(scene, shapes, ray, K, eps, names, active, state):
+    """One tracing pass of ≤ K hits per ray from (T, t_acc, acc) of the previous one.
+
+    Proxy hits whose surfel rejects the ray (α < 1/255 in the quad's corners) do not take
+    a slot; a ray stops after ``64K + 256`` of them (a guard against degenerate geometry,
+    counted apart from the hits: a ray through many large, faint quads is not cut short).
+    Returns (ids, slots, count, T, t_acc, acc, full: [R] K slots filled).
+    """
+    R = dr.width(ray)
+    rid = dr.arange(mi.UInt32, R)
+    ids = dr.full(mi.UInt32, INVALID, R * K)
+    slots = dr.zeros(mi.UInt32, R * K)
+    ptrs = [mi.ShapePtr(s) for s in shapes]
+    o_mag = dr.max(dr.abs(ray.o))                                       # [R] (per ray)
+    max_miss = 64 * K + 256
+
+    def cond(act, *_):
+        return act
+
+    def body(act, miss, count, T, t_acc, acc):
+        r = mi.Ray3f(dr.fma(ray.d, t_acc, ray.o), ray.d, ray.maxt - t_acc, ray.time, ray.wavelengths)
+        pi = scene.ray_intersect_preliminary(r, coherent=False, active=act)
+        act = act & pi.is_valid()
+        index = pi.prim_index // 2
+        slot = mi.UInt32(0)
+        for j in range(1, len(ptrs)):
+            slot = dr.select(pi.shape == ptrs[j], j, slot)
+        smp, vals = surfel_values(shapes, slot, index, ray, act, names)
+        keep = act & smp.valid
+        pos = rid * K + count
+        dr.scatter(ids, index, pos, keep)
+        dr.scatter(slots, slot, pos, keep)
+        w = dr.select(keep, T * smp.alpha, 0.0)                 # T_i α_i
+        acc = {k: dr.fma(vals[k], w, acc[k]) for k in names}
+        count = dr.select(keep, count + 1, count)
+        T = dr.select(keep, T * (1.0 - smp.alpha), T)
+        miss = dr.select(act & ~keep, miss + 1, miss)
+        # advance past the hit: ε, but at least ~4 float32 ulps of the new origin
+        step = dr.maximum(eps, (o_mag + t_acc + pi.t) * ULP_STEP)
+        t_acc = dr.select(act, t_acc + pi.t + step, t_acc)
+        act = act & (count < K) & (T >= Kn.T_MIN) & (miss < max_miss)
+        return act, miss, count, T, t_acc, acc
+
+    T0, t0, acc0 = state
+    init = (mi.Bool(active), mi.UInt32(0), dr.zeros(mi.UInt32, R), mi.Float(T0), mi.Float(t0),
+            dict(acc0))
+    _, _, count, T, t_acc, acc = dr.while_loop(init, cond, body, label="surfel trace+composite")
+    dr.eval(ids, slots, count, T, t_acc, acc)
+    return ids, slots, count, T, t_acc, acc, count >= K
 
 
 def composite_hits(shapes, ray, hits: HitBuffer, targets, background=0.0):

@@ -44,6 +44,7 @@ from comgs_dr.surfels.shape import _finite_rest, proxy_shift
 TILE = 8                  # tile side in pixels
 _MARGIN_PX = 0.05          # bounding boxes grow by this much (float error of the fitted projection)
 _NEAR_FRACTION = 0.999     # quads are clipped at this fraction of the near-clip distance
+MAX_PASSES = 16            # walks of K hits per ray at most (raster_all_hits)
 
 
 class NotPinhole(ValueError):
@@ -269,6 +270,56 @@ def bin_surfels(geo: SurfelGeometry, view: PinholeView) -> TileLists:
 
 def raster_hits(geo: SurfelGeometry, lists: TileLists, view: PinholeView, ray, pix, K: int,
                 active=True) -> HitBuffer:
+    """One walk (see :func:`_walk`): the first ≤ K hits of each ray; what lies behind the
+    K-th is dropped. :func:`raster_all_hits` continues the walk until the ray is opaque."""
+    return _walk(geo, lists, view, ray, pix, K, active)[0]
+
+
+def raster_all_hits(geo: SurfelGeometry, lists: TileLists, view: PinholeView, ray, pix,
+                    K: int, active=True, max_passes: int = MAX_PASSES):
+    """Every hit of each ray up to transmittance ``T_MIN``, not only the first K.
+
+    2DGS composites a tile's whole depth-sorted list until T < 1e-4; a fixed K-slot buffer
+    instead drops whatever lies behind the K-th hit, adds the background with the
+    transmittance left, and those surfels get no gradient. Here the walk is repeated for
+    the rays whose buffer is full while still open (T ≥ ``T_MIN``), each pass collecting the
+    next ≤ K hits strictly behind the previous pass's last one and continuing the product
+    of (1 − α), up to ``max_passes`` passes (K · max_passes hits). Returns (HitBuffer with
+    K · passes slots per ray, [R] bool: rays still open after the last pass).
+    """
+    R = dr.width(ray.d)
+    hb, T, t_last = _walk(geo, lists, view, ray, pix, K, active)
+    if lists.entries == 0:
+        return hb, np.zeros(R, bool)
+    ids = [np.asarray(hb.ids).reshape(R, K)]
+    slots = [np.asarray(hb.slots).reshape(R, K)]
+    count = np.asarray(hb.count).astype(np.int64)
+    open_ = (np.asarray(hb.count) >= K) & (np.asarray(T) >= Kn.T_MIN)
+    for _ in range(max_passes - 1):
+        if not open_.any():
+            break
+        act = to_jit(mi.Bool, open_)
+        h2, T2, t2 = _walk(geo, lists, view, ray, pix, K, act, t_after=t_last, T0=T)
+        c2 = np.where(open_, np.asarray(h2.count), 0)
+        ids.append(np.asarray(h2.ids).reshape(R, K))
+        slots.append(np.asarray(h2.slots).reshape(R, K))
+        count += c2
+        T = dr.select(act, T2, T)
+        t_last = dr.select(act, t2, t_last)
+        open_ = open_ & (c2 >= K) & (np.asarray(T) >= Kn.T_MIN)
+    P = len(ids)
+    if P == 1:
+        return hb, open_
+    # rays closed in an earlier pass hold INVALID in later passes' slots: compact per ray
+    all_ids = np.concatenate(ids, 1)                       # [R, P·K]
+    all_slots = np.concatenate(slots, 1)
+    return HitBuffer(ids=to_jit(mi.UInt32, all_ids.ravel()),
+                     slots=to_jit(mi.UInt32, all_slots.ravel()),
+                     count=to_jit(mi.UInt32, count.astype(np.uint32)), K=P * K), open_
+
+
+def _walk(geo: SurfelGeometry, lists: TileLists, view: PinholeView, ray, pix, K: int,
+          active=True, t_after=None, T0=None):
     """Hit buffer (≤ K hits per ray, ascending t) of rays through film pixels ``pix``.
 
     ``pix``: [R] integer film pixel (crop offset included) of each ray. The buffer holds
@@ -280,11 +331,16 @@ def raster_hits(geo: SurfelGeometry, lists: TileLists, view: PinholeView, ray, p
     t, so the walk stops once that bound passes the cut t_cut (t of the last kept hit
     when the buffer is complete, else ∞); every new hit before t_cut is inserted by t
     and the cut is recomputed over the ≤ K sorted hits.
+
+    ``t_after`` ([R] or None): only hits with t strictly greater count (a continued walk);
+    ``T0`` ([R] or None): the transmittance in front of them. Returns (HitBuffer, [R]
+    transmittance after the kept hits, [R] t of the last kept hit).
     """
     R = dr.width(ray.d)
     if lists.entries == 0:                          # nothing in view: no hits
-        return HitBuffer(ids=dr.full(mi.UInt32, INVALID, R * K), slots=dr.zeros(mi.UInt32, R * K),
-                         count=dr.zeros(mi.UInt32, R), K=K)
+        return (HitBuffer(ids=dr.full(mi.UInt32, INVALID, R * K), slots=dr.zeros(mi.UInt32, R * K),
+                          count=dr.zeros(mi.UInt32, R), K=K),
+                dr.full(mi.Float, 1.0, R) if T0 is None else mi.Float(T0), dr.zeros(mi.Float, R))
     with dr.suspend_grad():
         ray = mi.Ray3f(dr.detach(ray))
         ntx = view.tiles[0]
@@ -293,6 +349,8 @@ def raster_hits(geo: SurfelGeometry, lists: TileLists, view: PinholeView, ray, p
         j1 = dr.gather(mi.UInt32, lists.end, tile)
         j1 = dr.select(mi.Bool(active), j1, j0)
         pxf, pyf = mi.Float(pix.x), mi.Float(pix.y)
+        t_lo = dr.full(mi.Float, -dr.inf, R) if t_after is None else mi.Float(t_after)
+        T_in = dr.full(mi.Float, 1.0, R) if T0 is None else mi.Float(T0)
         tb = dr.alloc_local(mi.Float, K, mi.Float(dr.inf))
         ab = dr.alloc_local(mi.Float, K, mi.Float(0.0))
         ib = dr.alloc_local(mi.UInt32, K, mi.UInt32(INVALID))
@@ -316,7 +374,7 @@ def raster_hits(geo: SurfelGeometry, lists: TileLists, view: PinholeView, ray, p
             _, ua, va, oka = Kn.ray_surfel(ray.o, ray.d, p, t_u, t_v, n, s)    # the surfel
             alpha = Kn.surfel_alpha(op, ua, va)
             hit = (m & ok & oka & (dr.abs(u) <= qmax) & (dr.abs(v) <= qmax) & (t > 0)
-                   & (t <= ray.maxt) & (t < tcut) & (alpha >= Kn.ALPHA_MIN) & dr.isfinite(alpha)
+                   & (t <= ray.maxt) & (t < tcut) & (t > t_lo) & (alpha >= Kn.ALPHA_MIN) & dr.isfinite(alpha)
                    & dr.isfinite(t))
             return hit, t, alpha, g
 
@@ -352,7 +410,7 @@ def raster_hits(geo: SurfelGeometry, lists: TileLists, view: PinholeView, ray, p
                 L = dr.select(T < Kn.T_MIN, k + 1, L)
                 return k + 1, T, L, tb, ab
 
-            _, T, L, tb, ab = dr.while_loop((mi.UInt32(0), mi.Float(1.0), mi.UInt32(K + 1), tb, ab),
+            _, T, L, tb, ab = dr.while_loop((mi.UInt32(0), mi.Float(T_in), mi.UInt32(K + 1), tb, ab),
                                             c3, b3, label="raster cut")
             cut = need & ((L <= K) | (count == K))
             count = dr.select(need & (L <= K), L, count)
@@ -375,9 +433,10 @@ def raster_hits(geo: SurfelGeometry, lists: TileLists, view: PinholeView, ray, p
             return j + 1, count, Tall, tcut, tb, ab, ib
 
         j, count, Tall, tcut, tb, ab, ib = dr.while_loop(
-            (mi.UInt32(j0), dr.zeros(mi.UInt32, R), dr.full(mi.Float, 1.0, R),
+            (mi.UInt32(j0), dr.zeros(mi.UInt32, R), mi.Float(T_in),
              dr.full(mi.Float, dr.inf, R), tb, ab, ib),
             cond, body, label="raster walk")
+        t_last = dr.select(count > 0, tb[dr.maximum(count, 1) - 1], 0.0)
         base = dr.arange(mi.UInt32, R) * K
         ids = dr.full(mi.UInt32, INVALID, R * K)
         slots = dr.zeros(mi.UInt32, R * K)
@@ -393,12 +452,21 @@ def raster_hits(geo: SurfelGeometry, lists: TileLists, view: PinholeView, ray, p
             return k + 1, ib
 
         dr.while_loop((mi.UInt32(0), ib), c4, b4, label="raster write")
-        dr.eval(ids, slots, count)
-    return HitBuffer(ids=ids, slots=slots, count=count, K=K)
+        dr.eval(ids, slots, count, Tall, t_last)
+    return HitBuffer(ids=ids, slots=slots, count=count, K=K), Tall, t_last
 
 
 def find_hits(shapes, sensor, ray, pix, K: int, active=True) -> HitBuffer:
-    """Project, bin and walk: the hit buffer of ``sensor``'s rays ``ray`` through ``pix``."""
+    """Project, bin and walk once: the first ≤ K hits of ``sensor``'s rays ``ray`` through
+    ``pix`` (what lies behind is dropped; :func:`find_all_hits` keeps it)."""
     view = pinhole_view(sensor)
     geo = surfel_geometry(shapes)
     return raster_hits(geo, bin_surfels(geo, view), view, ray, pix, K, active)
+
+
+def find_all_hits(shapes, sensor, ray, pix, K: int, active=True, max_passes: int = MAX_PASSES):
+    """Project, bin and walk until every ray is opaque (≤ ``max_passes`` walks of K hits):
+    (HitBuffer, [R] bool rays still open), :func:`raster_all_hits`."""
+    view = pinhole_view(sensor)
+    geo = surfel_geometry(shapes)
+    return raster_all_hits(geo, bin_surfels(geo, view), view, ray, pix, K, active, max_passes)

@@ -66,19 +66,43 @@ class BestState:
         if psnr == psnr and (self.psnr is None or psnr > self.psnr):
             self.psnr, self.iteration, self.state = psnr, iteration, trainer.snapshot()
 
-    def settle(self, trainer, final_psnr: float, iteration: int, desc: str) -> dict | None:
-        """Restore the best state when the final one is more than ``tolerance_db`` worse
-        (or NaN); returns a record of the divergence (logged and warned), else None."""
+    def settle(self, trainer, final_psnr: float, iteration: int, desc: str,
+               restore: bool = True) -> dict | None:
+        """When the final state is more than ``tolerance_db`` worse than the best (or NaN),
+        restore the best one (``restore``; else keep the final state) and return a record
+        of the divergence (logged and warned, ``restored`` saying which state was kept);
+        else None."""
         if self.state is None or (final_psnr == final_psnr
                                   and final_psnr >= self.psnr - self.tolerance_db):
             return None
-        trainer.restore(self.state)
+        if restore:
+            trainer.restore(self.state)
         note = {"best_psnr_select": round(self.psnr, 3), "best_iteration": self.iteration,
-                "final_psnr_select": round(final_psnr, 3), "final_iteration": iteration}
+                "final_psnr_select": round(final_psnr, 3), "final_iteration": iteration,
+                "restored": bool(restore)}
+        kept = (f"the state of iteration {self.iteration} is kept" if restore
+                else "the final state is kept (restore off)")
         warnings.warn(f"{desc}: training-view PSNR fell from {self.psnr:.2f} dB (iteration "
-                      f"{self.iteration}) to {final_psnr:.2f} dB (iteration {iteration}); the "
-                      "state of iteration {0} is kept".format(self.iteration), stacklevel=2)
+                      f"{self.iteration}) to {final_psnr:.2f} dB (iteration {iteration}); "
+                      f"{kept}", stacklevel=2)
         return note
+
+    def to_checkpoint(self) -> tuple[dict, dict | None]:
+        """({``best_<name>``: array}, {psnr, iteration} or None): what a checkpoint keeps of
+        the best state, so that a resumed run can still restore it."""
+        if self.state is None:
+            return {}, None
+        return ({f"best_{k}": v for k, v in self.state.items()},
+                {"psnr": self.psnr, "iteration": self.iteration})
+
+    def from_checkpoint(self, arrays: dict, record: dict | None) -> None:
+        """Take back what :meth:`to_checkpoint` wrote (nothing when ``record`` is None)."""
+        if not record:
+            return
+        state = {k[5:]: v for k, v in arrays.items() if k.startswith("best_")}
+        if state:
+            self.psnr, self.iteration, self.state = (float(record["psnr"]),
+                                                     int(record["iteration"]), state)
 
 
 def run_loop(trainer, cfg, desc: str, progress: bool = True, log_dir: Path | None = None,
