@@ -83,12 +83,12 @@ def bench(data_dir: Path, n_surfels: int, iters: int, method: str = "raster") ->
             dr.sync_thread()
             steps.append(time.perf_counter() - t)
         t = time.perf_counter()
-        tr.density.accumulate(np.asarray(dr.grad(tr.opt["surfels.means"])).T + 1e-3,
+        tr.strategy.controller.accumulate(np.asarray(dr.grad(tr.opt["surfels.means"])).T + 1e-3,
                               np.asarray(tr.opt["surfels.means"]).T, np.zeros(3), 0.36)
-        new, _ = tr.density.densify_and_prune(tr.params(), tr.opt, dict(PARAM_KEYS), np.random.default_rng(0))
+        new, _ = tr.strategy.controller.densify_and_prune(tr.params(), tr.opt, dict(PARAM_KEYS), np.random.default_rng(0))
         tick("density", t)
         med = {k: float(np.median(v[2:] if len(v) > 2 else v)) for k, v in T.items()}
-        med["density"] /= tr.density.cfg.interval
+        med["density"] /= tr.strategy.controller.cfg.interval
         med["n"] = tr.params().count
         med["step"] = float(np.median(steps[2:]))
         return med

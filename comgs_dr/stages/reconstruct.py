@@ -37,7 +37,8 @@ from comgs_dr.train import background as bgenv
 from comgs_dr.train import checkpoint as ck
 from comgs_dr.train.init import initial_surfels  # noqa: F401 (part of this stage's API)
 from comgs_dr.train import losses as L
-from comgs_dr.train.density import DensityConfig, DensityController
+from comgs_dr.train.density import DensityConfig
+from comgs_dr.train.strategy import DefaultStrategy, StepInfo, tan_half
 from comgs_dr.train.loop import BestState, finish, run_loop, zero_nonfinite_grads
 
 log = logging.getLogger(__name__)
@@ -82,7 +83,9 @@ class RadianceConfig:
     """
     preset: str = "object"
     iterations: int = 3000
-    max_hits: int = 24
+    max_hits: int = 128                   # hit-buffer slots per ray and pass
+    max_passes: int = 16                  # passes of max_hits: every surfel on a ray is
+                                          # composited (1: the first max_hits only)
     sh_degree: int = 2
     sh_increase_every: int = 250          # one SH band more every this many its (3DGS: 1000)
     init_points: int = 20_000
@@ -182,6 +185,11 @@ def scaled_density_schedule(iterations: int) -> dict:
     return dict(stop=max(1, iterations // 2), opacity_reset_interval=max(1, iterations // 4))
 
 
+def log_lerp(start: float, end: float, t: float) -> float:
+    """Exponential decay from ``start`` (t = 0) to ``end`` (t = 1): 3DGS's learning rates."""
+    return math.exp((1 - t) * math.log(start) + t * math.log(end))
+
+
 def _with_sh_degree(p: SurfelParams, degree: int) -> SurfelParams:
     d = p.to_numpy()
     k = (degree + 1) ** 2
@@ -246,6 +254,7 @@ class Trainer:
         extra = dict(environment=bgenv.initial_emitter(cfg.env_resolution, self.views),
                      env_background=True) if self.env else {}
         self.scene = gbuffer_scene({"surfels": params}, sensors, max_hits=cfg.max_hits,
+                                   max_passes=cfg.max_passes,
                                    targets=targets, background=bg, **extra)
         self.integ = self.scene.integrator()
         self.mp = mi.traverse(self.scene)
@@ -268,7 +277,7 @@ class Trainer:
             except (KeyError, ValueError, TypeError, RuntimeError) as e:
                 raise ValueError(f"checkpoint {self.run_dir / ck.CKPT_NAME}: its Adam state does "
                                  f"not fit its surfels ({e}); delete it to start over") from e
-        self.density = DensityController(DensityConfig(**cfg.densify), params.count, self.extent)
+        self.strategy = DefaultStrategy(DensityConfig(**cfg.densify), params.count, self.extent)
         self.targets = [to_jit(mi.TensorXf, v.image) for v in self.views]
         self.masks = [None if v.mask is None else to_jit(mi.TensorXf, v.mask[..., None])
                       for v in self.views]
@@ -314,13 +323,13 @@ class Trainer:
     def _lr_means(self) -> float:
         c = self.cfg
         t = self.run_fraction()
-        return float(self.extent * math.exp((1 - t) * math.log(c.lr_means) + t * math.log(c.lr_means_final)))
+        return float(self.extent * log_lerp(c.lr_means, c.lr_means_final, t))
 
     def _lr_env(self) -> float:
         c, t = self.cfg, self.run_fraction()
         if c.lr_env_final is None:
             return float(c.lr_env)
-        return float(math.exp((1 - t) * math.log(c.lr_env) + t * math.log(c.lr_env_final)))
+        return float(log_lerp(c.lr_env, c.lr_env_final, t))
 
     def params(self) -> SurfelParams:
         return self.shape.params
@@ -386,10 +395,11 @@ class Trainer:
             self.integ.background = self.background
         nan_grads = self._guard_gradients()
         hit_stats = self._hit_stats()
-        gm = np.asarray(dr.grad(self.opt["surfels.means"]))           # [3, N]
-        cam = np.asarray(self.views[i].camera.to_world)[:3, 3]
-        tan_half = math.tan(math.radians(self.views[i].camera.fov_x_deg) / 2)
-        self.density.accumulate(gm.T, np.asarray(self.opt["surfels.means"]).T, cam, tan_half)
+        self.strategy.step_post_backward(StepInfo(
+            grad_means=np.asarray(dr.grad(self.opt["surfels.means"])).T,
+            means=np.asarray(self.opt["surfels.means"]).T,
+            camera=np.asarray(self.views[i].camera.to_world)[:3, 3],
+            tan_half_fov=tan_half(self.views[i].camera.fov_x_deg)))
         # Adam sees the gradient w.r.t. positions in units of the scene extent: its ε would
         # otherwise damp the steps of large scenes (∂L/∂μ ∝ 1/scale) and the fit would
         # depend on the unit of length; the learning rate carries the extent back.
@@ -411,16 +421,14 @@ class Trainer:
         stats["psnr_train"] = psnr(c_img, np.asarray(self._target(i, bg)))
         stats["nan_grads"] = nan_grads
         stats.update(hit_stats)
-        it = self.iteration
-        if self.density.due(it, self.run_fraction()):
-            new, counts = self.density.densify_and_prune(self.params(), self.opt,
-                                                         {f: k for f, k in PARAM_KEYS.items()}, self.rng)
-            self._resize(new, remap="done")
-            stats.update({f"densify_{k}": v for k, v in counts.items()})
-        if self.density.reset_due(it, self.run_fraction()):
-            new = self.density.reset_opacity(self.params(), self.opt, {"opacity_logit": "surfels.opacity_logit"})
-            self.mp["surfels.opacity_logit"] = new.opacity_logit
+        edits = self.strategy.step_post_update(self.params(), self.opt, PARAM_KEYS,
+                                               self.iteration, self.run_fraction(), self.rng)
+        if edits.params is not None:
+            self._resize(edits.params, remap="done")
+        if edits.opacity_logit is not None:
+            self.mp["surfels.opacity_logit"] = edits.opacity_logit
             self.mp.update(self.opt)
+        stats.update(edits.stats)
         return stats
 
     def _hit_stats(self) -> dict:
@@ -517,7 +525,7 @@ class Trainer:
             self.env_opt.reset(bgenv.KEY)
         self._set_learning_rates()
         self.mp.update(self.opt)
-        self.density._reset_stats(self.params().count)
+        self.strategy.reset_state(self.params().count)
         dr.eval()
 
     @property
