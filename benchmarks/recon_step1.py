@@ -8,8 +8,16 @@ sizes x two surfel counts x the two hit-finding methods of ``surfel_gbuffer``, s
 in one process: ``trace`` (before: Embree, with the proxy/BVH rebuild that every traced
 step needs, now inside "render") and ``raster`` (tile rasterisation; no BVH).
 
-    python benchmarks/recon_step1.py [--data DIR] [--quick]
+    python benchmarks/recon_step1.py [--data DIR] [--quick] [--hits 24x1 128x16]
     python benchmarks/recon_step1.py --run RUN_DIR     # PSNR-vs-time table of a finished run
+    python benchmarks/recon_step1.py --compare NAME=RUN_DIR ...   # before/after table of runs
+
+``--hits KxP`` compares hit buffers side by side: K slots per ray and P passes (24x1: the
+first 24 hits only, what step 1 did before; 128x16: every surfel on the ray).
+``--compare`` prints, per run: test PSNR best (iteration) and final, the largest fall below
+the best so far after iteration 1000, surfels at the end, seconds per iteration, the mean
+share of pixels whose compositing stopped early (hit buffer full while T > 1e-3, the last
+500 iterations) and hits per pixel, and whether the best state was restored.
 
 Without --data, a small procedural object dataset is generated (no download).
 """
@@ -35,6 +43,40 @@ def psnr_table(run: Path) -> None:
             print(f"{r['iteration']:>9} {r['time_s']:>8.1f} {r['surfels']:>8} {r['psnr_test']:>9.2f}")
 
 
+def compare_table(runs: list[str]) -> None:
+    print(f"{'run':<22} {'best dB':>8} {'@it':>5} {'final':>6} {'fall>1k':>7} {'surfels':>8} "
+          f"{'s/it':>6} {'early':>6} {'hits/px':>7} restored")
+    for spec in runs:
+        name, _, path = spec.rpartition("=")
+        f = Path(path) / "train_log.json"
+        if f.exists():
+            log = json.loads(f.read_text())
+            recs, summ = log["log"], log.get("summary") or {}
+        else:                                           # a run still going: its metrics.jsonl
+            recs = [json.loads(x) for x in (Path(path) / "metrics.jsonl").read_text().splitlines()]
+            summ = {}
+        ev = [r for r in recs if "psnr_test" in r]
+        if not ev:
+            print(f"{name or path:<22} (no evaluation yet)")
+            continue
+        best = max(ev, key=lambda r: r["psnr_test"])
+        fall, top = 0.0, -1e9
+        for r in ev:
+            top = max(top, r["psnr_test"])
+            if r["iteration"] > 1000:
+                fall = max(fall, top - r["psnr_test"])
+        last = recs[-1]
+        tail = [r for r in recs if r["iteration"] > last["iteration"] - 500]
+        early = np.mean([r.get("open_frac", np.nan) for r in tail])
+        hits = np.mean([r.get("hits_mean", np.nan) for r in tail])
+        s_it = last["time_s"] / max(last["iteration"], 1)
+        div = summ.get("diverged")
+        restored = "-" if not div else str(div.get("restored", True))
+        print(f"{name or path:<22} {best['psnr_test']:>8.2f} {best['iteration']:>5} "
+              f"{ev[-1]['psnr_test']:>6.2f} {fall:>7.2f} {last.get('surfels', 0):>8} "
+              f"{s_it:>6.3f} {early:>6.3f} {hits:>7.1f} {restored}")
+
+
 def make_data(res: int, root: Path) -> Path:
     from comgs_dr.data.synthetic import ObjectDatasetConfig, make_object_dataset
     from comgs_dr.data.procedural import procedural_object, procedural_sky
@@ -48,7 +90,8 @@ def make_data(res: int, root: Path) -> Path:
     return out
 
 
-def bench(data_dir: Path, n_surfels: int, iters: int, method: str = "raster") -> dict:
+def bench(data_dir: Path, n_surfels: int, iters: int, method: str = "raster",
+          hits: tuple[int, int] = (128, 16)) -> dict:
     import drjit as dr
     import mitsuba as mi
 
@@ -56,7 +99,7 @@ def bench(data_dir: Path, n_surfels: int, iters: int, method: str = "raster") ->
     from comgs_dr.stages.reconstruct import PARAM_KEYS, RadianceConfig, Trainer
     data = load_dataset(data_dir)
     cfg = RadianceConfig(init="random", init_points=n_surfels, densify=dict(start=10 ** 9),
-                         sh_increase_every=0, sh_degree=0)
+                         sh_increase_every=0, sh_degree=0, max_hits=hits[0], max_passes=hits[1])
     with tempfile.TemporaryDirectory() as tmp:
         tr = Trainer(data, tmp, cfg, progress=False)
         tr.integ.method = method
@@ -91,6 +134,7 @@ def bench(data_dir: Path, n_surfels: int, iters: int, method: str = "raster") ->
         med["density"] /= tr.strategy.controller.cfg.interval
         med["n"] = tr.params().count
         med["step"] = float(np.median(steps[2:]))
+        med["hits"] = float(np.mean(np.asarray(tr.integ._primal_cache[1][0].count)))
         return med
 
 
@@ -102,10 +146,17 @@ def main():
     ap.add_argument("--iters", type=int, default=10)
     ap.add_argument("--methods", nargs="+", default=["trace", "raster"])
     ap.add_argument("--quick", action="store_true", help="64 px, 10k surfels, 5 iterations")
+    ap.add_argument("--hits", nargs="+", default=["24x1", "128x16"],
+                    help="hit buffers KxP to compare (K slots, P passes)")
     ap.add_argument("--run", type=Path, help="print the PSNR-vs-time table of a run and exit")
+    ap.add_argument("--compare", nargs="+", metavar="NAME=RUN",
+                    help="print the before/after table of finished runs and exit")
     a = ap.parse_args()
     if a.run:
         psnr_table(a.run)
+        return
+    if a.compare:
+        compare_table(a.compare)
         return
     import comgs_dr
     comgs_dr.set_variant("llvm_ad_rgb")
@@ -117,18 +168,22 @@ def main():
     print(f"# machine: {platform.machine()}, {os.cpu_count()} cores | mitsuba {mitsuba.__version__}, "
           f"drjit {drjit.__version__}, llvm_ad_rgb | median ms per iteration over {a.iters}")
     cols = ("render", "loss", "backward", "adam", "update", "density")
-    print(f"{'px':>4} {'surfels':>8} {'method':>7} " + " ".join(f"{c:>8}" for c in cols)
-          + f" {'total':>8} {'it/s':>6} {'speed-up':>8} {'step()':>8}")
+    print(f"{'px':>4} {'surfels':>8} {'method':>7} {'hits':>7} " + " ".join(f"{c:>8}" for c in cols)
+          + f" {'total':>8} {'it/s':>6} {'ratio':>8} {'step()':>8} {'hits/px':>7}")
     for res in a.sizes:
         data = a.data or make_data(res, root)
         for n in a.surfels:
             first = None
             for m in a.methods:
-                r = bench(data, n, a.iters, m)
-                tot = sum(r[c] for c in cols)
-                first = first or tot
-                print(f"{res:>4} {r['n']:>8} {m:>7} " + " ".join(f"{1000 * r[c]:>8.1f}" for c in cols)
-                      + f" {1000 * tot:>8.1f} {1 / tot:>6.2f} {first / tot:>7.2f}x {1000 * r['step']:>8.1f}")
+                for h in a.hits:
+                    k, p = (int(v) for v in h.split("x"))
+                    r = bench(data, n, a.iters, m, (k, p))
+                    tot = sum(r[c] for c in cols)
+                    first = first or tot
+                    print(f"{res:>4} {r['n']:>8} {m:>7} {h:>7} "
+                          + " ".join(f"{1000 * r[c]:>8.1f}" for c in cols)
+                          + f" {1000 * tot:>8.1f} {1 / tot:>6.2f} {tot / first:>7.2f}x "
+                          f"{1000 * r['step']:>8.1f} {r['hits']:>7.1f}")
 
 
 if __name__ == "__main__":

@@ -132,3 +132,32 @@ def test_run_fraction_uses_the_time_budget():
     t.elapsed = 500.0
     assert Trainer.run_fraction(t) == 1.0
 
+
+
+def test_default_strategy_accumulates_then_edits_when_due():
+    """The strategy object (train/strategy.py) accumulates after every backward pass and
+    densifies / resets only on its schedule; a prune-only config never grows."""
+    from comgs_dr.surfels.params import field_to_numpy as f2n
+    from comgs_dr.train.strategy import DefaultStrategy, StepInfo
+    p = _toy()
+    cfg = DensityConfig(start=2, stop=4, interval=2, grad_threshold=1e-3, max_fraction=1.0,
+                        opacity_reset_interval=3)
+    st = DefaultStrategy(cfg, p.count, extent=1.0)
+    assert st.grows
+    grads = np.zeros((6, 3))
+    grads[0] = [1, 0, 0]
+    info = StepInfo(grad_means=grads, means=f2n("means", p.means, 6),
+                    camera=np.array([0.0, -10.0, 0.0]), tan_half_fov=0.5)
+    keys = {f: f for f in field_names()}
+    rng = np.random.default_rng(0)
+    st.step_post_backward(info)
+    e1 = st.step_post_update(p, None, keys, 1, 0.1, rng)            # not due
+    assert e1.params is None and e1.opacity_logit is None and e1.stats == {}
+    st.step_post_backward(info)
+    e2 = st.step_post_update(p, None, keys, 2, 0.2, rng)            # densify step
+    assert e2.params is not None and e2.stats["densify_cloned"] == 1
+    e3 = st.step_post_update(e2.params, None, keys, 3, 0.3, rng)    # reset step
+    assert e3.params is None and e3.stats["opacity_reset"] == 1
+    assert np.all(np.asarray(e3.opacity_logit) <= np.log(0.01 / 0.99) + 1e-5)
+    prune_only = DefaultStrategy(DensityConfig(max_fraction=0.0), p.count, extent=1.0)
+    assert not prune_only.grows

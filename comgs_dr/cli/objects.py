@@ -47,6 +47,10 @@ def _add_reconstruct(sub) -> None:
                    help="2DGS clone/split + opacity resets (densify until half of the run, reset "
                         "at its quarter and half; default: prune only, measured better on both "
                         "presets within CPU budgets; useful after a random init)")
+    p.add_argument("--no-restore", action="store_true",
+                   help="end on the final state even when it fell > 0.5 dB below the best "
+                        "evaluated one (the fall is still reported as 'diverged'); same as "
+                        "--restore-best false")
     p.add_argument("--variant", default="auto", metavar="MITSUBA_VARIANT",
                    help="Mitsuba variant: auto (default), llvm_ad_rgb (CPU) or cuda_ad_rgb")
     p.add_argument("--quiet", action="store_true")
@@ -58,6 +62,8 @@ def _cmd_reconstruct(args) -> int:
     set_variant(args.variant)
     kw = config_overrides(args, RadianceConfig)
     kw.pop("densify", None)
+    if args.no_restore:
+        kw["restore_best"] = False
     if args.densify:
         kw["densify"] = scaled_density_schedule(kw.get("iterations", RadianceConfig.iterations))
     cfg = RadianceConfig.from_preset(args.preset, **kw)      # flags checked before the data
@@ -66,7 +72,14 @@ def _cmd_reconstruct(args) -> int:
     write_run_info(args.out, args.data, args.preset, args.resolution_scale, args.white_background)
     s = train_radiance(data, args.out, cfg, progress=not args.quiet)
     print(f"step 1 done: {s['iterations']} iterations in {s['train_seconds']:.0f} s, {s['surfels']} surfels, "
-          f"test PSNR {s['psnr_test']:.2f} dB -> {args.out}/point_cloud.ply")
+          f"test PSNR {s['psnr_test']:.2f} dB, background {s['background']} -> "
+          f"{args.out}/point_cloud.ply")
+    d = s.get("diverged")
+    if d:
+        kept = (f"the state of iteration {d['best_iteration']} was restored" if d["restored"]
+                else "the final state was kept (--no-restore)")
+        print(f"  diverged: training-view PSNR {d['best_psnr_select']} dB at iteration "
+              f"{d['best_iteration']} fell to {d['final_psnr_select']} dB; {kept}")
     return 0
 
 

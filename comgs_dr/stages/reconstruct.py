@@ -501,7 +501,34 @@ class Trainer:
         off = len(self.views) if self.data.test else 0
         p_test, n = self._mean_psnr(views, off, max_views)
         p_sel, _ = self._mean_psnr(self.views, 0, max_views)
-        return {"psnr_test": p_test, "views": n, "psnr_select": p_sel}
+        out = {"psnr_test": p_test, "views": n, "psnr_select": p_sel}
+        if self.loss_fn.d2n_active(self.iteration):
+            out["d2n_grad_share"] = self.d2n_grad_share()
+        return out
+
+    def d2n_grad_share(self, view: int = 0) -> float:
+        """‖∂(λ_d2n L_d2n)/∂θ‖ / ‖∂L/∂θ‖ over the surfels' rotations and positions on one
+        training view: how much of the step the depth–normal prior drives (an instrument;
+        the gradients are cleared afterwards)."""
+        norms, keys = [], ("surfels.quats", "surfels.means")
+        for key in keys:
+            dr.set_grad(self.opt[key], 0)
+        for part in ("d2n", "total"):
+            img = mi.render(self.scene, self.mp, sensor=view, seed=0)
+            bufs = self.integ.split(img)
+            if part == "d2n":
+                dirs, origins = self._view_rays(view)
+                obj = self.loss_fn.lambda_d2n * L.d2n_loss(
+                    bufs["normal"], bufs["depth_unbiased"], bufs["weight"], dirs, origins,
+                    self.loss_fn.d2n_min_weight, self.loss_fn.detach_depth_normal)
+            else:
+                obj = self.loss(view, img)[0]
+            dr.backward(obj)
+            g = np.concatenate([np.asarray(dr.grad(self.opt[k])).ravel() for k in keys])
+            norms.append(float(np.linalg.norm(np.nan_to_num(g))))
+            for key in self.opt.keys():
+                dr.set_grad(self.opt[key], 0)
+        return norms[0] / max(norms[1], 1e-30)
 
     def snapshot(self) -> dict:
         """A host copy of the surfels (the Adam moments are not kept: a restored state
