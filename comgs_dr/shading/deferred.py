@@ -68,15 +68,16 @@ class DeferredPbr:
         s, key = self._sensor(sensor)
         if key in self._geo:
             return self._geo[key]
-        K = self.max_hits
         with dr.suspend_grad():
             dirs, origins = camera_rays(s)
             h, w = dirs.shape[:2]
             ray = mi.Ray3f(mi.Point3f(dr.unravel(mi.Point3f, origins.array)),
                            mi.Vector3f(dr.unravel(mi.Vector3f, dirs.array)))
             eps = composite.auto_epsilon(self.scene, shapes)
-            hits, out, _, _ = trace_composite(self.scene, shapes, ray, K, eps,
-                                              ("weight", "depth_unbiased", "normal"))
+            hits, out, _, _ = trace_composite(self.scene, shapes, ray, self.max_hits, eps,
+                                              ("weight", "depth_unbiased", "normal"),
+                                              max_passes=16)
+            K = hits.K                   # slots per ray over all passes
             W, D, N = out["weight"], out["depth_unbiased"], out["normal"]
             nrm = dr.norm(N)
             cover = (W >= self.min_weight) & dr.isfinite(D) & (D > 0) & (nrm > 1e-6)
@@ -106,7 +107,7 @@ class DeferredPbr:
             dr.eval(ids, wts, x, n, d, W)
         geo = {"pix": pix, "pix_np": np.asarray(pix, np.int64), "shape": (h, w), "dirs": ray.d,
                "W": W, "W_np": np.asarray(W).reshape(h, w), "x": x, "n": n, "wo": mi.Vector3f(-d),
-               "ids": ids, "w": wts}
+               "ids": ids, "w": wts, "K": K}
         self._geo[key] = geo
         return geo
 
@@ -137,7 +138,7 @@ class DeferredPbr:
                              f"(weight ≥ {self.min_weight}); is the object in view and inside "
                              "the sensor's clip planes?")
         mats = materials if materials is not None else self.surfel_materials()
-        K = self.max_hits
+        K = geo["K"]
         ids, w = geo["ids"], geo["w"]
         W = dr.block_sum(w, K)                                              # [P]
         inv = dr.rcp(dr.maximum(W, 1e-6))

@@ -124,13 +124,16 @@ def _excluding_scene(shapes, position: np.ndarray, radius: float):
 # ---------------------------------------------------------------------------------------
 # Tracing
 
+MAX_PASSES = 16      # passes of max_hits per ray: every surfel composited, as step 1 trains
+
 def _trace_chunk(scene, shapes, eps, origin, dirs, max_hits, colour_space):
     """Premultiplied per-ray buffers as numpy: W [R], C [R,3], L [R,3], D [R], N [R,3]."""
     o = mi.Point3f(*[dr.full(mi.Float, float(c), len(dirs)) for c in origin])
     d = to_jit(mi.Vector3f, dirs.T)
     with dr.suspend_grad():
         _, out, _, _ = trace_composite(scene, shapes, mi.Ray3f(o, d), max_hits, eps,
-                                       ("color", "weight", "depth", "normal"))
+                                       ("color", "weight", "depth", "normal"),
+                                       max_passes=MAX_PASSES)
         W, C = out["weight"], out["color"]
         L = (colorspace.unpremultiplied_to_linear(C, W, W_EPS) if colour_space == "srgb"
              else mi.Color3f(dr.maximum(C, 0.0)))

@@ -19,8 +19,11 @@ from comgs_dr.surfels.composite import trace_composite
 
 
 def trace_visibility(scene, origins, directions, max_hits: int = 8, epsilon: float = -1.0,
-                     radiance: bool = True, colour_space: str = "srgb"):
+                     radiance: bool = True, colour_space: str = "srgb", max_passes: int = 16):
     """Occlusion [N] and (optionally) linear radiance [N] along N rays.
+
+    Every surfel on a ray is composited (up to T < 1e-4, in passes of ``max_hits``): a
+    truncated list made shadows of semi-transparent surfel stacks lighter than they are.
 
     ``origins``/``directions``: ``mi.Point3f``/``mi.Vector3f`` (unit); every shape of
     ``scene`` must be a ``surfels`` shape. ``colour_space``: the space the radiance field's
@@ -37,7 +40,8 @@ def trace_visibility(scene, origins, directions, max_hits: int = 8, epsilon: flo
     targets = ("color", "weight") if radiance else ("weight",)
     with dr.suspend_grad():
         ray = mi.Ray3f(dr.detach(origins), dr.detach(directions))
-        _, out, _, _ = trace_composite(scene, shapes, ray, max_hits, eps, targets)
+        _, out, _, _ = trace_composite(scene, shapes, ray, max_hits, eps, targets,
+                                       max_passes=max_passes)
         occ = out["weight"]
         rad = None
         if radiance:
