@@ -1,12 +1,12 @@
 """Reconstruction step 1 benchmark: time per iteration by phase, and PSNR against wall time.
 
-Phases: render (hit finding + forward compositing), loss (L1 + SSIM + d2n + mask), backward
-(image adjoint + adjoint compositing over the cached hit buffer), adam, update (parameters
-into the scene), density (one densify-and-prune, amortised over its interval), and
-``step()``: a whole training step as the trainer runs it (random background included). Two image
-sizes x two surfel counts x the two hit-finding methods of ``surfel_gbuffer``, side by side
-in one process: ``trace`` (before: Embree, with the proxy/BVH rebuild that every traced
-step needs, now inside "render") and ``raster`` (tile rasterisation; no BVH).
+Phases of one iteration (object preset, hull init, at 100 px by default): bin (surfel frames,
+projection, tile sort), walk (the per-pixel walks of the tile lists, every pass), composite
+(forward compositing of the hit list), render (the whole ``mi.render``: the three above plus
+rays and film), loss (L1 + SSIM + d2n + mask), backward (image adjoint + adjoint compositing
+over the cached hit list), adam, update (parameters into the scene), python (what
+``step()`` spends outside them: gradient guard, instruments, density strategy), and
+``step()`` itself. Hit buffers side by side in one process (``--hits``).
 
     python benchmarks/recon_step1.py [--data DIR] [--quick] [--hits 24x1 128x16]
     python benchmarks/recon_step1.py --run RUN_DIR     # PSNR-vs-time table of a finished run
@@ -91,49 +91,62 @@ def make_data(res: int, root: Path) -> Path:
 
 
 def bench(data_dir: Path, n_surfels: int, iters: int, method: str = "raster",
-          hits: tuple[int, int] = (128, 16)) -> dict:
+          hits: tuple[int, int] = (128, 16), init: str = "auto") -> dict:
+    """Median seconds per phase of a step-1 iteration (object preset, ``init``), after a
+    few warm-up steps. The raster phases are timed by calling them directly on the
+    iteration's own view: ``bin`` (surfel frames + projection + tile sort), ``walk`` (the
+    per-pixel walks, every pass), ``composite`` (forward compositing of the hit list);
+    ``render`` is the whole ``mi.render`` (the three above, rays and film), ``python`` what
+    ``step()`` spends outside the measured phases."""
     import drjit as dr
     import mitsuba as mi
 
     from comgs_dr.data.load import load_dataset
-    from comgs_dr.stages.reconstruct import PARAM_KEYS, RadianceConfig, Trainer
+    from comgs_dr.stages.reconstruct import RadianceConfig, Trainer
+    from comgs_dr.surfels import composite, raster
     data = load_dataset(data_dir)
-    cfg = RadianceConfig(init="random", init_points=n_surfels, densify=dict(start=10 ** 9),
-                         sh_increase_every=0, sh_degree=0, max_hits=hits[0], max_passes=hits[1])
+    cfg = RadianceConfig.from_preset("object", init=init, init_points=n_surfels,
+                                     max_hits=hits[0], max_passes=hits[1])
     with tempfile.TemporaryDirectory() as tmp:
         tr = Trainer(data, tmp, cfg, progress=False)
         tr.integ.method = method
-        T = {k: [] for k in ("render", "loss", "backward", "adam", "update", "density")}
+        for _ in range(3):
+            tr.step()
+        T = {k: [] for k in ("bin", "walk", "composite", "render", "loss", "backward", "adam",
+                             "update", "step")}
 
         def tick(key, t0):
             dr.sync_thread()
             T[key].append(time.perf_counter() - t0)
-        for it in range(iters + 2):
+        shapes = composite.surfel_shapes(tr.scene, "bench")
+        for it in range(iters):
             i = it % len(tr.views)
+            sensor = tr.scene.sensors()[i]
+            if method == "raster":
+                sampler, _ = tr.integ.prepare(sensor, it, 0, tr.integ.aov_names())
+                ray, _, _ = tr.integ.sample_rays(tr.scene, sensor, sampler)
+                pix = tr.integ._raster_ctx[1]
+                t = time.perf_counter()
+                view = raster.pinhole_view(sensor)
+                geo = raster.surfel_geometry(shapes)
+                lists = raster.bin_surfels(geo, view)
+                tick("bin", t)
+                t = time.perf_counter()
+                hb, _ = raster.raster_all_hits(geo, lists, view, ray, pix, hits[0], True, hits[1])
+                tick("walk", t)
+                t = time.perf_counter()
+                composite.composite_hits(shapes, ray, hb, tr.integ.targets)
+                tick("composite", t)
             t = time.perf_counter(); img = mi.render(tr.scene, tr.mp, sensor=i, seed=it); dr.eval(img); tick("render", t)
             t = time.perf_counter(); total, _, _ = tr.loss(i, img); dr.eval(total); tick("loss", t)
             t = time.perf_counter(); dr.backward(total); dr.eval(dr.grad(tr.opt["surfels.means"])); tick("backward", t)
             t = time.perf_counter(); tr._guard_gradients(); tr.opt.step(); tr._clamp(); dr.eval(); tick("adam", t)
             t = time.perf_counter(); tr.mp.update(tr.opt); tick("update", t)
-        # the training step itself (random background, SH/density schedule, logging values):
-        # overheads outside the phases above show here (a background compiled into the
-        # kernels as a literal once recompiled every step: 316 vs 106 ms at 100 px)
-        steps = []
-        for it in range(iters + 2):
-            dr.sync_thread()
-            t = time.perf_counter()
-            tr.step()
-            dr.sync_thread()
-            steps.append(time.perf_counter() - t)
-        t = time.perf_counter()
-        tr.strategy.controller.accumulate(np.asarray(dr.grad(tr.opt["surfels.means"])).T + 1e-3,
-                              np.asarray(tr.opt["surfels.means"]).T, np.zeros(3), 0.36)
-        new, _ = tr.strategy.controller.densify_and_prune(tr.params(), tr.opt, dict(PARAM_KEYS), np.random.default_rng(0))
-        tick("density", t)
-        med = {k: float(np.median(v[2:] if len(v) > 2 else v)) for k, v in T.items()}
-        med["density"] /= tr.strategy.controller.cfg.interval
+            t = time.perf_counter(); tr.step(); tick("step", t)
+        med = {k: float(np.median(v)) if v else 0.0 for k, v in T.items()}
+        med["python"] = max(med["step"] - sum(med[k] for k in ("render", "loss", "backward",
+                                                                 "adam", "update")), 0.0)
         med["n"] = tr.params().count
-        med["step"] = float(np.median(steps[2:]))
         med["hits"] = float(np.mean(np.asarray(tr.integ._primal_cache[1][0].count)))
         return med
 
@@ -141,10 +154,10 @@ def bench(data_dir: Path, n_surfels: int, iters: int, method: str = "raster",
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, help="NeRF-synthetic folder (default: generated)")
-    ap.add_argument("--sizes", type=int, nargs="+", default=[64, 128])
-    ap.add_argument("--surfels", type=int, nargs="+", default=[10_000, 40_000])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[100])
+    ap.add_argument("--surfels", type=int, nargs="+", default=[20_000])
     ap.add_argument("--iters", type=int, default=10)
-    ap.add_argument("--methods", nargs="+", default=["trace", "raster"])
+    ap.add_argument("--methods", nargs="+", default=["raster"])
     ap.add_argument("--quick", action="store_true", help="64 px, 10k surfels, 5 iterations")
     ap.add_argument("--hits", nargs="+", default=["24x1", "128x16"],
                     help="hit buffers KxP to compare (K slots, P passes)")
@@ -163,13 +176,14 @@ def main():
     import drjit
     import mitsuba
     if a.quick:
-        a.sizes, a.surfels, a.iters = [64], [10_000], 5
+        a.sizes, a.surfels, a.iters = [64], [5_000], 3
     root = Path(tempfile.gettempdir()) / "comgs_bench_recon"
     print(f"# machine: {platform.machine()}, {os.cpu_count()} cores | mitsuba {mitsuba.__version__}, "
-          f"drjit {drjit.__version__}, llvm_ad_rgb | median ms per iteration over {a.iters}")
-    cols = ("render", "loss", "backward", "adam", "update", "density")
-    print(f"{'px':>4} {'surfels':>8} {'method':>7} {'hits':>7} " + " ".join(f"{c:>8}" for c in cols)
-          + f" {'total':>8} {'it/s':>6} {'ratio':>8} {'step()':>8} {'hits/px':>7}")
+          f"drjit {drjit.__version__}, llvm_ad_rgb | median ms per phase over {a.iters} "
+          "iterations (object preset, hull init, after 3 warm-up steps)")
+    cols = ("bin", "walk", "composite", "render", "loss", "backward", "adam", "update", "python")
+    print(f"{'px':>4} {'surfels':>8} {'method':>7} {'hits':>7} " + " ".join(f"{c:>9}" for c in cols)
+          + f" {'step()':>8} {'ratio':>6} {'hits/px':>7}")
     for res in a.sizes:
         data = a.data or make_data(res, root)
         for n in a.surfels:
@@ -178,12 +192,10 @@ def main():
                 for h in a.hits:
                     k, p = (int(v) for v in h.split("x"))
                     r = bench(data, n, a.iters, m, (k, p))
-                    tot = sum(r[c] for c in cols)
-                    first = first or tot
+                    first = first or r["step"]
                     print(f"{res:>4} {r['n']:>8} {m:>7} {h:>7} "
-                          + " ".join(f"{1000 * r[c]:>8.1f}" for c in cols)
-                          + f" {1000 * tot:>8.1f} {1 / tot:>6.2f} {tot / first:>7.2f}x "
-                          f"{1000 * r['step']:>8.1f} {r['hits']:>7.1f}")
+                          + " ".join(f"{1000 * r[c]:>9.1f}" for c in cols)
+                          + f" {1000 * r['step']:>8.1f} {r['step'] / first:>5.2f}x {r['hits']:>7.1f}")
 
 
 if __name__ == "__main__":
