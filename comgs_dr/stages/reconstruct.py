@@ -69,14 +69,12 @@ class RadianceConfig:
     * ``init_opacity`` 0.5 (3DGS 0.1): +2.7 dB at 300 its with the shell init;
       ``init_normals`` off: +0.6 dB at 250 its but −3 dB at 500 its.
     * colour learning rates 2× 3DGS; larger scale/rotation rates grew hazy surfels (−6 dB).
-    * prune-only density control (``densify=None``): objects 28.3/28.6 dB vs 27.1/26.6 dB
-      densified at 300/400 its; scenes 30.4 dB vs 20.0 dB with ``scaled_density_schedule``
-      (the opacities had not recovered from the reset). On the detail stress object 2DGS's
-      clone rules (prune at opacity 0.05, ≤ 10 % clones per 100 its until half of a 600 s
-      budget, no reset) peaked at 23.4 dB (500 its) and then fell to 19.5 dB by 1500 its
-      (the best state was kept), with or without opacity-splitting clones; prune-only
-      reached 25.84 dB in the same 600 s. Pass ``densify`` (DensityConfig
-      fields, {} for its 2DGS defaults) to enable clone/split, e.g. after a random init.
+    * prune-only density control (``densify=None``); the strategy
+      (:class:`comgs_dr.train.strategy.DefaultStrategy`) clones/splits with ``densify``
+      (DensityConfig fields, {} for its 2DGS defaults). With every surfel composited,
+      clone/split (≤ 5 % per 100 its from 500 to 1500, budget 60k, no reset) was −0.27 dB at
+      1250 its on the 48-view teapot with 27k instead of 18k surfels, +0.08 dB at 750 its on
+      the outdoor scene (docs/step1.md): not yet a default.
     * ``max_scale_frac`` (largest σ / extent; None: the preset's): without a cap a few object
       surfels grew to σ ≈ 0.17–0.3 and hazed the fit (29.9 → 19.8 dB at 1180 its); scenes
       20.8 vs 18.4 dB at 750 its with a 2 % cap vs none (a hazy floater above the scene).

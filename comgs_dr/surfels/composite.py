@@ -199,12 +199,14 @@ def finish(acc: dict, targets, T_final, background=0.0) -> dict:
 
 
 def trace_composite(scene, shapes, ray, K: int, eps: float, targets, background=0.0, active=True,
-                    max_passes: int = 1):
+                    max_passes: int = 1, keep_hits: bool = True):
     """Primal pass: hit buffer + accumulated buffers, no AD.
 
     Each pass traces up to K hits per ray; rays whose K slots are full while still open
     (T ≥ ``T_MIN``) are traced on from their last hit for up to ``max_passes`` passes, so
-    every surfel on the ray is composited (1: only the first K, as before).
+    every surfel on the ray is composited (1: only the first K, as before). Without
+    ``keep_hits`` the hit list is not kept (``ids``/``slots`` None: callers that need only
+    the buffers, e.g. visibility rays, save K · passes slots per ray).
     Returns (HitBuffer with K · passes slots, outputs {target: value}, acc {base buffer:
     value}, T_final); ``HitBuffer.still_open`` holds the rays left open ([R] bool numpy).
     """
@@ -220,17 +222,18 @@ def trace_composite(scene, shapes, ray, K: int, eps: float, targets, background=
             pids, pslots, pcount, T, t_acc, acc, full = _trace_pass(scene, shapes, ray, K, eps,
                                                                     names, act, state)
             c = np.asarray(pcount)
-            ids.append(np.asarray(pids).reshape(R, K))
-            slots.append(np.asarray(pslots).reshape(R, K))
+            if keep_hits:
+                ids.append(np.asarray(pids).reshape(R, K))
+                slots.append(np.asarray(pslots).reshape(R, K))
             count += c
             open_ = np.asarray(full) & (np.asarray(T) >= Kn.T_MIN)
             state = (T, t_acc, acc)
             if not open_.any():
                 break
             act = to_jit(mi.Bool, open_)
-        P = len(ids)
-        hits = HitBuffer(ids=to_jit(mi.UInt32, np.concatenate(ids, 1).ravel()),
-                         slots=to_jit(mi.UInt32, np.concatenate(slots, 1).ravel()),
+        P = p + 1
+        hits = HitBuffer(ids=to_jit(mi.UInt32, np.concatenate(ids, 1).ravel()) if keep_hits else None,
+                         slots=to_jit(mi.UInt32, np.concatenate(slots, 1).ravel()) if keep_hits else None,
                          count=to_jit(mi.UInt32, count.astype(np.uint32)), K=P * K,
                          still_open=open_)
         out = finish(acc, targets, T, background)

@@ -133,7 +133,7 @@ def _trace_chunk(scene, shapes, eps, origin, dirs, max_hits, colour_space):
     with dr.suspend_grad():
         _, out, _, _ = trace_composite(scene, shapes, mi.Ray3f(o, d), max_hits, eps,
                                        ("color", "weight", "depth", "normal"),
-                                       max_passes=MAX_PASSES)
+                                       max_passes=MAX_PASSES, keep_hits=False)
         W, C = out["weight"], out["color"]
         L = (colorspace.unpremultiplied_to_linear(C, W, W_EPS) if colour_space == "srgb"
              else mi.Color3f(dr.maximum(C, 0.0)))

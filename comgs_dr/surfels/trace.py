@@ -41,7 +41,7 @@ def trace_visibility(scene, origins, directions, max_hits: int = 8, epsilon: flo
     with dr.suspend_grad():
         ray = mi.Ray3f(dr.detach(origins), dr.detach(directions))
         _, out, _, _ = trace_composite(scene, shapes, ray, max_hits, eps, targets,
-                                       max_passes=max_passes)
+                                       max_passes=max_passes, keep_hits=False)
         occ = out["weight"]
         rad = None
         if radiance:
