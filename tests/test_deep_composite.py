@@ -20,8 +20,9 @@ from comgs_dr.surfels.scene import gbuffer_scene
 N, RES, K = 200, 4, 24
 
 
-def _stack(opacity=0.06, seed=0):
-    """N large, faint surfels facing a camera on −y, spread along y in [−0.5, 0.5]."""
+def _stack(opacity=0.06, seed=0, n=N):
+    """n large, faint surfels facing a camera on −y, spread along y in [−0.5, 0.5]."""
+    N = n
     rng = np.random.default_rng(seed)
     means = np.c_[rng.normal(0, 0.01, N), np.linspace(-0.5, 0.5, N), rng.normal(0, 0.01, N)]
     # w-first quaternion turning the local normal z onto the y axis
@@ -113,9 +114,10 @@ def test_gradient_of_a_surfel_behind_the_buffer(which):
 
 def test_adjoint_equals_unrolled_reference_on_the_deep_list():
     """Reverse-mode gradients over a multi-pass hit list = plain AD through the
-    Python-unrolled compositing of the same list."""
+    Python-unrolled compositing of the same list (80 surfels: 4 passes of 24; the
+    unrolled reference compiles one step per slot)."""
     from comgs_dr.surfels import raster
-    params = _stack()
+    params = _stack(n=80)
     scene = _scene(params, 16)
     shapes = composite.surfel_shapes(scene, "test")
     sensor = scene.sensors()[0]
@@ -126,7 +128,7 @@ def test_adjoint_equals_unrolled_reference_on_the_deep_list():
         pix = mi.Vector2u(mi.UInt32(np.tile(np.arange(RES), RES)),
                           mi.UInt32(np.repeat(np.arange(RES), RES)))
     hits, still_open = raster.find_all_hits(shapes, sensor, ray, pix, K, max_passes=16)
-    assert hits.K > K and not still_open.any() and np.array(hits.count).min() > 3 * K
+    assert hits.K > 2 * K and not still_open.any() and np.array(hits.count).min() > 2 * K
     p = shapes[0].params
     targets = ("color", "weight")
     _, acc, T = composite.composite_hits(shapes, ray, hits, targets)
