@@ -570,6 +570,10 @@ class Trainer:
     def log_fields(self) -> dict:
         return {"surfels": self.params().count, **self.diagnostics()}
 
+    def bar_fields(self) -> dict:
+        """What the progress bar shows besides loss and PSNR (the log has the rest)."""
+        return {"surfels": self.params().count}
+
 
 def resolve_background(cfg: RadianceConfig, data) -> tuple[RadianceConfig, str]:
     """``background='auto'`` decided from the data: (config with 'grey' or 'env', reason).

@@ -4,7 +4,8 @@
 A trainer provides ``iteration``, ``elapsed`` (training seconds so far, restored on resume),
 ``log`` (list of records), ``step() -> stats`` (with ``loss`` and ``psnr_train``),
 ``evaluate(max_views) -> {'psnr_test', ...}``, ``checkpoint()`` and optionally
-``log_fields() -> dict`` (extra per-record values, e.g. the surfel count) and, to keep the
+``log_fields() -> dict`` (extra per-record values, e.g. the surfel count; ``bar_fields()``
+the part of them the progress bar shows, default all) and, to keep the
 best state, ``snapshot() -> state`` / ``restore(state)``: then every evaluation that returns
 ``psnr_select`` (a PSNR on *training* views, so the test views never choose the state) and
 beats the best so far is snapshotted (:class:`BestState`). The config gives
@@ -131,6 +132,7 @@ def _loop(trainer, cfg, desc, progress, log_dir, best, jsonl_dir, stage, guard) 
     t0 = time.perf_counter() - trainer.elapsed
     stopped_early = False
     extra = getattr(trainer, "log_fields", dict)
+    bar_extra = getattr(trainer, "bar_fields", extra)     # what the progress bar shows
     clock = CheckpointClock(cfg.checkpoint_every, getattr(cfg, "checkpoint_every_s", None))
     shown = {}                         # the bar names each PSNR and keeps the last test one
     while trainer.iteration < cfg.iterations:
@@ -152,7 +154,7 @@ def _loop(trainer, cfg, desc, progress, log_dir, best, jsonl_dir, stage, guard) 
             shown["psnr_train"] = f"{stats['psnr_train']:.2f}"
             if "psnr_test" in rec:
                 shown["psnr_test"] = f"{rec['psnr_test']:.2f}"
-            bar.set_postfix(loss=f"{stats['loss']:.4f}", **shown, **extra())
+            bar.set_postfix(loss=f"{stats['loss']:.4f}", **shown, **bar_extra())
         bar.update(1)
         if guard.signum is not None:
             bar.close()
