@@ -143,3 +143,11 @@ def test_adjoint_equals_unrolled_reference_on_the_deep_list():
     g_ref = (np.array(dr.grad(p.opacity_logit)), np.array(dr.grad(p.sh)))
     for a, b in zip(g_fast, g_ref):
         np.testing.assert_allclose(a, b, atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize("passes", [0, 257])
+def test_max_passes_out_of_range_is_refused(passes):
+    from conftest import error_chain_text
+    with pytest.raises(Exception) as e:
+        _scene(_stack(n=4), passes)
+    assert "'max_passes' must be in 1..256" in error_chain_text(e.value)
