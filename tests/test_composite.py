@@ -190,6 +190,12 @@ def test_sop_shadows_match_traced_shadows(sphere_over_plane):
     assert iou > 0.7, iou
     err = np.abs(lum(sop) - lum(tr))[ground].mean() / lum(none)[ground].mean()
     assert err < 0.05, err                                      # stated: < 5 % mean abs.
+    # the probes alone (no traced sun rays): the same shadow within 5 %, but further from
+    # the traced one than with the sun's rays traced
+    plain, _ = _render(tmp, shapes, "sop", probes_ball=str(tmp / "ball.npz"), sun_rays=0)
+    err_plain = np.abs(lum(plain) - lum(tr))[ground].mean() / lum(none)[ground].mean()
+    assert err_plain < 0.05, err_plain
+    assert err < err_plain, (err, err_plain)
     # no shadow pass outside the shadow region (here 2× the ball's bounds): the ground
     # there is exactly the unshadowed scene
     small, _ = _render(tmp, shapes, "trace", region_factor=2.0)
@@ -627,3 +633,6 @@ def test_shadow_ratio_uses_the_depth_normals_by_default(sphere_over_plane):
     with pytest.raises(Exception) as ei:
         _render(tmp, {"scene": scene_p, "ball": b}, "trace", shadow_normals="mesh")
     assert "shadow_normals must be depth or surfel" in error_chain_text(ei.value)
+    with pytest.raises(Exception) as ei:
+        _render(tmp, {"scene": scene_p, "ball": b}, "trace", sun_rays=-1)
+    assert "sun_rays must be ≥ 0" in error_chain_text(ei.value)

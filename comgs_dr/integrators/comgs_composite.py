@@ -33,6 +33,7 @@ from comgs_dr.emitters.octenvmap import emitter_class, is_octenvmap
 from comgs_dr.shading.deferred import rgba_tensor
 from comgs_dr.shading.shade import SAMPLINGS, ShadingConfig, ShadingPoints, shade
 from comgs_dr.shading.shadow import shadow_ratio
+from comgs_dr.shading.sun import split_sun
 from comgs_dr.shading.visibility import NoVisibility, SopVisibility, TraceVisibility
 from comgs_dr.sops.occlusion import region_box
 from comgs_dr.sops.probes import ProbeSet
@@ -116,6 +117,12 @@ class CompositeBase(AttachedRender):
        - |int|
        - Probes interpolated per point / surfels composited per camera ray / per traced
          occlusion ray (Default: 8 / 32 / 32)
+     * - sun_rays
+       - |int|
+       - Shadow rays per scene pixel traced toward the dominant compact source of an
+         object's map (:func:`comgs_dr.shading.sun.split_sun`: a sun holding ≥ 15 % of the
+         map's power); the probes (``sop``) keep the rest of the map. 0: the probes carry
+         the whole map (Default: 16)
      * - shadow_normals
        - |string|
        - Normals of the scene's shadow receivers: ``depth`` (from the scene layer's rendered
@@ -165,6 +172,9 @@ class CompositeBase(AttachedRender):
         self.cfg = ShadingConfig(rays=int(props.get("rays", 256)), sampling=sampling,
                                  indirect=bool(props.get("indirect", True)))
         self.shadow_rays = int(props.get("shadow_rays", 256))
+        self.sun_rays = int(props.get("sun_rays", 16))
+        if self.sun_rays < 0:
+            raise ValueError(f"comgs_composite: sun_rays must be ≥ 0, got {self.sun_rays}")
         self.region_factor = float(props.get("region_factor", 6.0))
         self.probe_k = int(props.get("probe_k", 8))
         self.max_hits = int(props.get("max_hits", 32))
@@ -218,7 +228,9 @@ class CompositeBase(AttachedRender):
             obj = {"name": name, "slot": j, "group": g, "env": self._env(scene, name),
                    "box": region_box(lo, hi, self.region_factor), "centre": (lo + hi) / 2,
                    "size": float(np.linalg.norm(hi - lo)), "vis": None,
-                   "material": self.materials.get(name)}
+                   "material": self.materials.get(name), "sun": None}
+            if self.sun_rays and self.variant in ("sop", "trace"):
+                obj["sun"] = split_sun(obj["env"])
             if name in self.probe_files and self.variant != "trace":
                 pr = ProbeSet.load(self.probe_files[name])
                 if pr.texture is None:
@@ -238,7 +250,8 @@ class CompositeBase(AttachedRender):
             st["shadow_vis"] = SopVisibility(sp.atlas(), ProbeGrid(sp.positions, sp.radius),
                                              sp.res, self.probe_k)
         needs_trace = self.variant == "trace" or any(
-            o["vis"] is None for o in st["objects"]) and self.variant != "paste"
+            o["vis"] is None or o["sun"] is not None for o in st["objects"]) \
+            and self.variant != "paste"
         if needs_trace and objects:
             occ_scene = mi.load_dict({"type": "scene", **{
                 ids[j]: SurfelShapeBase.from_params(shapes[j].params, id=ids[j])
@@ -295,7 +308,9 @@ class CompositeBase(AttachedRender):
             x, n, _ = buf.points(0, pix)
             if n_depth is not None:
                 n = dr.gather(mi.Vector3f, n_depth, pix)
-            s = shadow_ratio(x, n, o["env"], vis, self.shadow_rays, seed + 7919 * (i + 1))
+            s = shadow_ratio(x, n, o["env"], vis, self.shadow_rays, seed + 7919 * (i + 1),
+                             sun=o["sun"], sun_visibility=st.get("trace_vis"),
+                             sun_rays=self.sun_rays)
             dr.scatter(S, s, pix)
         return S
 
