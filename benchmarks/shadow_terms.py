@@ -11,8 +11,9 @@ time:
 * light: ``true`` (the dataset's map path-traced at the placement, ``probes/<name>.exr``,
   written here when missing) or ``est`` (the composition's own map);
 * visibility: ``trace`` (occlusion traced per shading ray) or ``sop`` (the cached probes);
-* receivers' normals: ``depth`` (the default), ``surfel`` or ``flat`` (the ground's true
-  (0, 0, 1): an oracle, only right on the ground);
+* receivers' normals: ``depth`` (the default), ``depth:R`` (averaged over (2R+1)² pixels
+  instead of the default's), ``surfel`` or ``flat`` (the ground's true (0, 0, 1): an
+  oracle, only right on the ground);
 * ``probe_k``: probes blended per point (SOP);
 * ``sun_rays``: the composite's per-pixel shadow rays toward the dominant light (0: off).
 
@@ -85,7 +86,8 @@ def shadow_maps(comp: Path, cams, variant: str, normals: str, probe_k: int,
     from comgs_dr.stages.render_comp import load_comp_scene
     manifest = comp_folder.read_manifest(comp)
     flat = normals == "flat"
-    extra = {"shadow_normals": "depth" if flat else normals, "probe_k": probe_k,
+    radius = int(normals.split(":")[1]) if normals.startswith("depth:") else None
+    extra = {"shadow_normals": "depth" if flat or radius else normals, "probe_k": probe_k,
              "sun_rays": sun_rays}
     scene = load_comp_scene(comp, variant, None,
                             [comp_folder.sensor_dict(cams[0],
@@ -99,6 +101,9 @@ def shadow_maps(comp: Path, cams, variant: str, normals: str, probe_k: int,
         params.update()
         st = integ._setup(scene)
         buf = integ._buffers(scene, sensor, st)
+        if radius:
+            dn = type(buf).depth_normals
+            buf.depth_normals = lambda g, *a, _f=dn, _b=buf, **k: _f(_b, g, radius=radius)
         if flat:
             up = dr.full(mi.Vector3f, 0.0, dr.width(buf.weight[0]))
             up.z = 1.0
@@ -143,6 +148,8 @@ def main(argv=None):
     ap.add_argument("--sun-rays", type=int, nargs="*", default=[16],
                     help="extra rows: these per-pixel sun ray counts (both lights, sop and trace)")
     ap.add_argument("--rows", default="all", help="'all' or comma-separated row indices")
+    ap.add_argument("--extra", nargs="*", default=[],
+                    help="more rows as LIGHT,VIS,NORMALS,K,SUN (e.g. true,trace,depth:4,8,16)")
     a = ap.parse_args(argv)
     import comgs_dr
     comgs_dr.set_variant("llvm_ad_rgb")
@@ -158,7 +165,10 @@ def main(argv=None):
     rows = ROWS + [(lt, vis, "depth", 8, n) for n in a.sun_rays for lt in ("true", "est")
                    for vis in ("sop", "trace")]
     if a.rows != "all":
-        rows = [rows[int(i)] for i in a.rows.split(",")]
+        rows = [rows[int(i)] for i in a.rows.split(",") if i]
+    for e in a.extra:
+        lt, vis, nrm, k, sun = e.split(",")
+        rows.append((lt, vis, nrm, int(k), int(sun)))
     print(f"{'light':5} {'vis':5} {'normals':7} {'k':>2} {'sun':>4} {'S':>6} {'truth':>6} "
           f"{'depth':>6} {'IoU':>5} {'s':>5}")
     results = []

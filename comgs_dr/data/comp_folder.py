@@ -102,7 +102,7 @@ def integrator_props(comp_dir, manifest: dict, variant: str = "sop",
              "colour_space": manifest["scene"].get("colour_space", "srgb")}
     if manifest["scene"].get("sky"):                 # step 1's learned sky (--background env)
         props["sky"] = str(manifest["scene"]["sky"])
-    if variant == "sop":
+    if variant in ("sop", "trace"):      # trace: the receivers' normals (shadow_normals)
         props["shadow_probes"] = str(root / manifest["shadow_probes"])
     for name, o in manifest["objects"].items():
         props[f"envmap_{name}"] = str(root / o["envmap"])

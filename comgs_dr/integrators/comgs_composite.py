@@ -6,8 +6,9 @@ Per frame: one trace through every surfel shape gives per-shape-group layers
 W, depth and normal, and per-hit blend weights), so depth compositing is exact per surfel
 and antialiased. The scene layer is multiplied by the shadow ratio S = L_o'/L_o
 (:func:`comgs_dr.shading.shadow.shadow_ratio`, L_i importance-sampled from the map lighting
-the nearest object, O' from the cached shadow-region probes or traced, the receivers' normals
-from the scene layer's rendered depth: ``GroupBuffers.depth_normals``); each object layer
+the nearest object, O' from the cached shadow-region probes or traced, a map's compact sun
+split off and traced per pixel (``sun_rays``), the receivers' normals blended from the shadow
+probes' plane-fitted normals); each object layer
 is relit by deferred PBR (:func:`comgs_dr.shading.shade.shade`) under its own map with its
 own probes, whose occlusion includes the other objects'. Materials are blended from the
 object shapes' (traversable) parameters, so ``mi.render`` + ``dr.backward`` give gradients
@@ -28,6 +29,7 @@ import numpy as np
 
 from comgs_dr.core import colorspace
 from comgs_dr.core.cameras import camera_rays
+from comgs_dr.core.hostarray import to_jit
 from comgs_dr.core.variant import AttachedRender, mitsuba_ad_base, variant_class
 from comgs_dr.emitters.octenvmap import emitter_class, is_octenvmap
 from comgs_dr.shading.deferred import rgba_tensor
@@ -37,7 +39,7 @@ from comgs_dr.shading.sun import split_sun
 from comgs_dr.shading.visibility import NoVisibility, SopVisibility, TraceVisibility
 from comgs_dr.sops.occlusion import region_box
 from comgs_dr.sops.probes import ProbeSet
-from comgs_dr.sops.query import ProbeGrid
+from comgs_dr.sops.query import ProbeGrid, query
 from comgs_dr.surfels.composite import surfel_shapes
 from comgs_dr.surfels.edit import parse_material_spec
 from comgs_dr.surfels.groups import group_gbuffer, group_materials
@@ -125,9 +127,11 @@ class CompositeBase(AttachedRender):
          the whole map (Default: 16)
      * - shadow_normals
        - |string|
-       - Normals of the scene's shadow receivers: ``depth`` (from the scene layer's rendered
+       - Normals of the scene's shadow receivers: ``probes`` (blended from the shadow-region
+         probes' plane-fitted normals, ``sops.occlusion.plane_normals``; ``depth`` where no
+         probe is in reach or none are given), ``depth`` (from the scene layer's rendered
          depth, ``GroupBuffers.depth_normals``; the surfels' own where it has an edge) or
-         ``surfel`` (Default: depth)
+         ``surfel`` (Default: probes)
      * - colour_space
        - |string|
        - Space of the radiance fields' colour (Default: srgb)
@@ -179,10 +183,10 @@ class CompositeBase(AttachedRender):
         self.probe_k = int(props.get("probe_k", 8))
         self.max_hits = int(props.get("max_hits", 32))
         self.trace_hits = int(props.get("trace_hits", 32))
-        self.shadow_normals = str(props.get("shadow_normals", "depth"))
-        if self.shadow_normals not in ("depth", "surfel"):
-            raise ValueError(f"comgs_composite: shadow_normals must be depth or surfel, got "
-                             f"{self.shadow_normals!r}")
+        self.shadow_normals = str(props.get("shadow_normals", "probes"))
+        if self.shadow_normals not in ("probes", "depth", "surfel"):
+            raise ValueError(f"comgs_composite: shadow_normals must be probes, depth or "
+                             f"surfel, got {self.shadow_normals!r}")
         self.colour_space = str(props.get("colour_space", "srgb"))
         if self.colour_space not in ("srgb", "linear"):
             raise ValueError(f"comgs_composite: colour_space must be srgb or linear, got "
@@ -243,12 +247,16 @@ class CompositeBase(AttachedRender):
             props = mi.Properties("octenvmap")
             props["filename"] = self.sky_path
             st["sky"] = emitter_class()(props)
-        if self.variant == "sop":
+        if self.shadow_path and self.variant in ("sop", "trace"):
             sp = ProbeSet.load(self.shadow_path)
-            if sp.texture is None:
-                raise ValueError(f"comgs_composite: shadow probes {self.shadow_path} are not baked")
-            st["shadow_vis"] = SopVisibility(sp.atlas(), ProbeGrid(sp.positions, sp.radius),
-                                             sp.res, self.probe_k)
+            st["shadow_grid"] = (ProbeGrid(sp.positions, sp.radius),
+                                 to_jit(mi.Vector3f, np.asarray(sp.normals, np.float32).T))
+            if self.variant == "sop":
+                if sp.texture is None:
+                    raise ValueError(f"comgs_composite: shadow probes {self.shadow_path} are "
+                                     f"not baked")
+                st["shadow_vis"] = SopVisibility(sp.atlas(), st["shadow_grid"][0], sp.res,
+                                                 self.probe_k)
         needs_trace = self.variant == "trace" or any(
             o["vis"] is None or o["sun"] is not None for o in st["objects"]) \
             and self.variant != "paste"
@@ -300,7 +308,7 @@ class CompositeBase(AttachedRender):
             best, best_d = dr.select(closer, i, best), dr.select(closer, d, best_d)
         vis = st["shadow_vis"] if self.variant == "sop" else st["trace_vis"]
         S = dr.full(mi.Color3f, 1.0, h * w)
-        n_depth = buf.depth_normals(0)[0] if self.shadow_normals == "depth" else None
+        n_depth = buf.depth_normals(0)[0] if self.shadow_normals != "surfel" else None
         for i, o in enumerate(st["objects"]):
             pix = dr.compress((Ws > MIN_WEIGHT) & inside & (best == i))
             if dr.width(pix) == 0:
@@ -308,6 +316,8 @@ class CompositeBase(AttachedRender):
             x, n, _ = buf.points(0, pix)
             if n_depth is not None:
                 n = dr.gather(mi.Vector3f, n_depth, pix)
+            if self.shadow_normals == "probes" and "shadow_grid" in st:
+                n = _probe_normals(st["shadow_grid"], x, n, self.probe_k)
             s = shadow_ratio(x, n, o["env"], vis, self.shadow_rays, seed + 7919 * (i + 1),
                              sun=o["sun"], sun_visibility=st.get("trace_vis"),
                              sun_rays=self.sun_rays)
@@ -374,6 +384,20 @@ class CompositeBase(AttachedRender):
 
     def to_string(self):
         return f"CompositeIntegrator[variant={self.variant}, rays={self.cfg.rays}]"
+
+
+def _probe_normals(grid, x, n, k: int):
+    """Receivers' normals [P] blended from the ``k`` nearest shadow probes' normals (eq.-knn
+    weights); ``n`` where no probe is within the query radius or the blend vanishes."""
+    g, normals = grid
+    knn = query(g, x, n, k)
+    acc = dr.zeros(mi.Vector3f, dr.width(x))
+    for j in range(k):
+        slot = dr.arange(mi.UInt32, dr.width(x)) * k + j
+        w = dr.gather(mi.Float, knn.weight, slot)
+        acc += w * dr.gather(mi.Vector3f, normals, dr.gather(mi.UInt32, knn.index, slot))
+    ok = ~knn.fallback & (dr.norm(acc) > 0.5)
+    return dr.select(ok, dr.normalize(acc), n)
 
 
 def integrator_class():

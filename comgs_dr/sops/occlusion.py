@@ -4,7 +4,9 @@
   placed object: surface points (multi-view-consistent G-buffer points of the scene, see
   ``sops.placement``) inside the object's bounding box scaled ×``box_factor`` (6 in the
   paper) that face the object (n·(c − x) > 0), thinned by farthest point sampling and
-  offset along the normal.
+  offset along the normal. Their normals are refitted (:func:`plane_normals`): the fused
+  points' own normals scatter by ~30° on a flat ground, and the shadow ratio weights the
+  light by the receiver's cosine.
 * :func:`transform_probes` — an object's own SOPs carried into the world by its placement:
   positions and normals transformed, each octahedral texture resampled so that a world
   direction reads the texel of the object-space direction Rᵀω (bilinear, 2×2 supersampled).
@@ -48,6 +50,8 @@ class ShadowConfig:
     offset_frac: float = 0.01        # probe offset along the normal, × object size
     supersample: int = 1             # directions per texel side when tracing
     neighbours: float = 8.0          # probes within the query radius
+    normal_radius_frac: float = 0.15  # probe normals: plane fit to the surface points within
+                                      # this × the object's diagonal (0: the points' own)
 
     def __post_init__(self):
         if self.count < 1 or self.res < 2 or self.box_factor < 1 or self.supersample < 1:
@@ -85,10 +89,45 @@ def shadow_region_probes(points, normals, lo, hi, cfg: ShadowConfig = ShadowConf
                  "region", name, len(keep), cfg.count)
     idx = keep[farthest_points(points[keep], cfg.count, seed)]
     pts, nrm = points[idx], normals[idx]
+    if cfg.normal_radius_frac > 0:
+        nrm = plane_normals(points, normals, pts, cfg.normal_radius_frac * size)
     return ProbeSet(positions=pts + cfg.offset_frac * size * nrm, normals=nrm, res=cfg.res,
                     radius=query_radius(pts, cfg.neighbours, size),
                     meta={"shadow_region": {"object": name, "box": [blo.tolist(), bhi.tolist()],
                                             "candidates": int(len(keep)), **cfg.__dict__}})
+
+
+def plane_normals(points, normals, at, radius: float, iterations: int = 6) -> np.ndarray:
+    """[M, 3] unit normals at ``at`` [M, 3]: a plane fitted to the surface ``points`` [N, 3]
+    within ``radius`` of each, turned to the side of their mean ``normals``.
+
+    Why: fused depth points lie on the surface within their depth noise, so a plane fit over
+    a few hundred of them is flat to a few degrees where their own normals (alpha-blended
+    surfel normals) scatter by ~30° (the demo's ground: 32° mean error, 4.6° fitted at 0.2
+    units). The fit is reweighted ``iterations`` times by the residuals (Tukey's biweight,
+    cut at 3 × the median residual), so points across an edge — a ground meeting a wall —
+    drop out (0.1 from a wall: 0.9° off with 6 iterations; 4° with 3 Cauchy-weighted).
+    Fewer than 3 points in reach: the nearest point's own normal."""
+    from scipy.spatial import cKDTree
+    points, normals = np.asarray(points, np.float64), np.asarray(normals, np.float64)
+    at = np.asarray(at, np.float64)
+    tree = cKDTree(points)
+    out = np.empty_like(at)
+    for i, nb in enumerate(tree.query_ball_point(at, radius)):
+        if len(nb) < 3:
+            out[i] = normals[tree.query(at[i])[1]]
+            continue
+        q, w = points[nb], np.ones(len(nb))
+        for _ in range(iterations + 1):
+            c = (w[:, None] * q).sum(0) / w.sum()
+            cov = (w[:, None] * (q - c)).T @ (q - c)
+            n = np.linalg.eigh(cov)[1][:, 0]
+            r = np.abs((q - c) @ n)
+            cut = 3.0 * max(np.median(r), 1e-12)
+            w = np.where(r < cut, (1.0 - (r / cut) ** 2) ** 2, 0.0) + 1e-9
+        ref = normals[nb].mean(0)
+        out[i] = n if n @ ref >= 0 else -n
+    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
 
 
 def transform_probes(probes: ProbeSet, sim: Similarity, supersample: int = 2) -> ProbeSet:
