@@ -15,7 +15,9 @@ time:
   instead of the default's), ``surfel`` or ``flat`` (the ground's true (0, 0, 1): an
   oracle, only right on the ground);
 * ``probe_k``: probes blended per point (SOP);
-* ``sun_rays``: the composite's per-pixel shadow rays toward the dominant light (0: off).
+* ``sun_rays``: the composite's per-pixel shadow rays toward the dominant light (0: off);
+* ``map``: (SOP) the sun rays look up a shadow map of this resolution (0: traced per
+  pixel; ``comgs_composite`` ``sun_map_res``).
 
 Columns: mean S in the truth's shadow pixels, the truth's mean ratio there, depth ratio
 (1 − S) / (1 − truth) (1: as dark as the truth), and the IoU of the shadow masks.
@@ -77,7 +79,7 @@ def true_comp(data: Path, comp: Path, out: Path) -> Path:
 
 
 def shadow_maps(comp: Path, cams, variant: str, normals: str, probe_k: int,
-                sun_rays: int, seed: int = 0):
+                sun_rays: int, sun_map: int = 512, seed: int = 0):
     """{frame: S luminance [H, W]} read from the integrator's shadow pass."""
     import drjit as dr
     import mitsuba as mi
@@ -88,7 +90,7 @@ def shadow_maps(comp: Path, cams, variant: str, normals: str, probe_k: int,
     flat = normals == "flat"
     radius = int(normals.split(":")[1]) if normals.startswith("depth:") else None
     extra = {"shadow_normals": "depth" if flat or radius else normals, "probe_k": probe_k,
-             "sun_rays": sun_rays}
+             "sun_rays": sun_rays, "sun_map_res": sun_map}
     scene = load_comp_scene(comp, variant, None,
                             [comp_folder.sensor_dict(cams[0],
                                                      clip=comp_folder.clip_for(manifest, cams))],
@@ -129,14 +131,14 @@ def score(data: Path, maps: dict) -> dict:
             "iou": float(np.mean(iou)), "pixels": int(len(s))}
 
 
-ROWS = [  # (light, visibility, normals, probe_k, sun_rays)
-    ("true", "trace", "flat", 8, 0),
-    ("true", "trace", "depth", 8, 0),
-    ("true", "trace", "surfel", 8, 0),
-    ("true", "sop", "depth", 8, 0),
-    ("true", "sop", "depth", 1, 0),
-    ("est", "trace", "depth", 8, 0),
-    ("est", "sop", "depth", 8, 0),
+ROWS = [  # (light, visibility, normals, probe_k, sun_rays, sun map res)
+    ("true", "trace", "flat", 8, 0, 0),
+    ("true", "trace", "depth", 8, 0, 0),
+    ("true", "trace", "surfel", 8, 0, 0),
+    ("true", "sop", "depth", 8, 0, 0),
+    ("true", "sop", "depth", 1, 0, 0),
+    ("est", "trace", "depth", 8, 0, 0),
+    ("est", "sop", "depth", 8, 0, 0),
 ]
 
 
@@ -149,7 +151,8 @@ def main(argv=None):
                     help="extra rows: these per-pixel sun ray counts (both lights, sop and trace)")
     ap.add_argument("--rows", default="all", help="'all' or comma-separated row indices")
     ap.add_argument("--extra", nargs="*", default=[],
-                    help="more rows as LIGHT,VIS,NORMALS,K,SUN (e.g. true,trace,depth:4,8,16)")
+                    help="more rows as LIGHT,VIS,NORMALS,K,SUN[,MAP] (e.g. "
+                         "true,sop,probes,8,16,512; MAP default 512)")
     a = ap.parse_args(argv)
     import comgs_dr
     comgs_dr.set_variant("llvm_ad_rgb")
@@ -162,24 +165,26 @@ def main(argv=None):
     for c in cams:
         h, w = read_image(a.data / "comp" / "gt" / f"{c['name']}.png").shape[:2]
         c["width"], c["height"] = w, h
-    rows = ROWS + [(lt, vis, "depth", 8, n) for n in a.sun_rays for lt in ("true", "est")
+    rows = ROWS + [(lt, vis, "depth", 8, n, 512) for n in a.sun_rays for lt in ("true", "est")
                    for vis in ("sop", "trace")]
     if a.rows != "all":
         rows = [rows[int(i)] for i in a.rows.split(",") if i]
     for e in a.extra:
-        lt, vis, nrm, k, sun = e.split(",")
-        rows.append((lt, vis, nrm, int(k), int(sun)))
-    print(f"{'light':5} {'vis':5} {'normals':7} {'k':>2} {'sun':>4} {'S':>6} {'truth':>6} "
-          f"{'depth':>6} {'IoU':>5} {'s':>5}")
+        f = e.split(",")
+        rows.append((f[0], f[1], f[2], int(f[3]), int(f[4]), int(f[5]) if len(f) > 5 else 512))
+    print(f"{'light':5} {'vis':5} {'normals':7} {'k':>2} {'sun':>4} {'map':>4} {'S':>6} "
+          f"{'truth':>6} {'depth':>6} {'IoU':>5} {'s':>5}")
     results = []
-    for lt, vis, nrm, k, sun in rows:
+    for lt, vis, nrm, k, sun, smap in rows:
         t = time.perf_counter()
-        sc = score(a.data, shadow_maps(comps[lt], cams, vis, nrm, k, sun))
+        sc = score(a.data, shadow_maps(comps[lt], cams, vis, nrm, k, sun, smap))
         dt = time.perf_counter() - t
-        print(f"{lt:5} {vis:5} {nrm:7} {k:2d} {sun:4d} {sc['S']:6.3f} {sc['truth']:6.3f} "
-              f"{sc['depth_ratio']:6.3f} {sc['iou']:5.2f} {dt:5.1f}", flush=True)
+        shown = smap if vis == "sop" and sun else "-"
+        print(f"{lt:5} {vis:5} {nrm:7} {k:2d} {sun:4d} {shown:>4} {sc['S']:6.3f} "
+              f"{sc['truth']:6.3f} {sc['depth_ratio']:6.3f} {sc['iou']:5.2f} {dt:5.1f}",
+              flush=True)
         results.append({"light": lt, "visibility": vis, "normals": nrm, "probe_k": k,
-                        "sun_rays": sun, **sc, "seconds": dt})
+                        "sun_rays": sun, "sun_map_res": smap, **sc, "seconds": dt})
     (a.out / "shadow_terms.json").write_text(json.dumps(results, indent=1))
 
 

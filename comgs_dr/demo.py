@@ -31,7 +31,7 @@ from comgs_dr.data import placement_probe, procedural
 from comgs_dr.data.composition_dataset import CompositionDatasetConfig, make_composition_dataset
 from comgs_dr.data.images import read_image, to_u8
 from comgs_dr.data.load import load_dataset
-from comgs_dr.eval import lighting_metrics, report
+from comgs_dr.eval import comp_region, lighting_metrics, report
 from comgs_dr.lighting import backends, envmap
 from comgs_dr.stages.compose import PRESETS as COMPOSE_PRESETS
 from comgs_dr.stages.compose import compose
@@ -140,6 +140,28 @@ def comparison_figure(comp_gt: Path, renders: dict, names: list[str], scores: di
     return sheet
 
 
+def region_figures(comp_data: Path, renders: dict, names: list[str], out: Path) -> None:
+    """``crops.png`` (the shadow and the object at full size: truth | each variant) and
+    ``shadow_profile.png`` (darkness along the shadow's axis) of the frame whose truth has
+    the most shadow pixels (``eval.comp_region``)."""
+    from comgs_dr.core.exr import read_image as read_exr
+    best = None
+    for n in names:
+        gt = read_image(comp_data / "gt" / f"{n}.png")[..., :3]
+        empty = read_exr(comp_data / "empty" / f"{n}.exr")[..., :3]
+        obj = read_image(comp_data / "mask" / f"{n}.png")
+        obj = (obj[..., 0] if obj.ndim == 3 else obj) > 0.5
+        shadow = comp_region.regions(colorspace.srgb_decode(gt), empty, obj)[0]
+        if best is None or shadow.sum() > best[0].sum():
+            best = (shadow, obj, gt, empty, n)
+    shadow, obj, gt, empty, n = best
+    preds = {v: read_image(d / f"{n}.png")[..., :3] for v, d in renders.items()}
+    comp_region.crops_figure(gt, preds, obj, shadow).save(out / "crops.png")
+    png = comp_region.profile_png(gt, empty, preds, shadow)
+    if png is not None:
+        (out / "shadow_profile.png").write_bytes(png)
+
+
 def envmap_figure(true_eq: np.ndarray, est_eq: np.ndarray, width: int = 384) -> Image.Image:
     """True | estimated equirect maps at the placement (same exposure, ``colorspace.tonemap``)."""
     scale = 1.0 / max(float(np.percentile(true_eq @ colorspace.LUMA, 90)), 1e-6)
@@ -235,6 +257,7 @@ def run_demo(cfg: DemoConfig) -> dict:
     names = [f["name"] for f in scores["sop"]["per_frame"]]
     comparison_figure(ds / "comp" / "gt", {v: comp / "renders" / v for v in VARIANTS}, names,
                       scores).save(out / "comparison.png")
+    region_figures(ds / "comp", {v: comp / "renders" / v for v in VARIANTS}, names, out)
     est = estimated[OBJECT]["hdr"]
     # the truth: the light that arrives at the placement (the scene without the object,
     # path-traced from there); the map itself ignores the scene's shadows and ground
@@ -253,6 +276,10 @@ def run_demo(cfg: DemoConfig) -> dict:
         "sop_beats_paste_frames": int(sum(a["psnr"] > b["psnr"] for a, b in zip(
             scores["sop"]["per_frame"], scores["paste"]["per_frame"]))),
         "frames": len(names),
+        "region": {v: scores[v].get("region") for v in VARIANTS},
+        "sop_beats_paste_frames_region": int(sum(
+            a.get("psnr_region", -np.inf) > b.get("psnr_region", np.inf) for a, b in zip(
+                scores["sop"]["per_frame"], scores["paste"]["per_frame"]))),
         "scene_step1_psnr_test": s1["psnr_test"], "object_step1_psnr_test": o1["psnr_test"],
         "object_step2_psnr_test": o2["psnr_test"], "lighting": light_err,
         "lighting_vs_map": light_err_map,

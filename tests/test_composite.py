@@ -196,6 +196,13 @@ def test_sop_shadows_match_traced_shadows(sphere_over_plane):
     err_plain = np.abs(lum(plain) - lum(tr))[ground].mean() / lum(none)[ground].mean()
     assert err_plain < 0.05, err_plain
     assert err < err_plain, (err, err_plain)
+    # the sun's rays looking up its shadow map (the default) or traced per pixel: the same
+    # shadow (the map's texels are ≤ 1/256 of the objects' size)
+    per_px, _ = _render(tmp, shapes, "sop", probes_ball=str(tmp / "ball.npz"), sun_map_res=0)
+    err_px = np.abs(lum(per_px) - lum(tr))[ground].mean() / lum(none)[ground].mean()
+    assert err_px < err_plain, (err_px, err_plain)
+    diff = np.abs(lum(per_px) - lum(sop))[ground].mean() / lum(none)[ground].mean()
+    assert diff < 0.01, diff
     # no shadow pass outside the shadow region (here 2× the ball's bounds): the ground
     # there is exactly the unshadowed scene
     small, _ = _render(tmp, shapes, "trace", region_factor=2.0)
@@ -636,6 +643,9 @@ def test_shadow_ratio_uses_the_depth_normals_by_default(sphere_over_plane):
     with pytest.raises(Exception) as ei:
         _render(tmp, {"scene": scene_p, "ball": b}, "trace", sun_rays=-1)
     assert "sun_rays must be ≥ 0" in error_chain_text(ei.value)
+    with pytest.raises(Exception) as ei:
+        _render(tmp, {"scene": scene_p, "ball": b}, "trace", sun_map_res=1)
+    assert "sun_map_res must be 0 (trace) or ≥ 2" in error_chain_text(ei.value)
 
 
 def test_plane_normals_flatten_scattered_points_and_keep_a_corner_apart():

@@ -160,6 +160,9 @@ def test_demo_tiny_end_to_end_report(tmp_path, capsys):
     for v in s["composition"].values():
         assert math.isfinite(v["psnr"]) and 0 < v["ssim"] <= 1
     assert math.isfinite(s["lighting"]["spheres"]["diffuse"]["si_rmse"])
+    sop = s["region"]["sop"]                         # what a user looks at, scored
+    assert math.isfinite(sop["psnr_region"]) and len(sop["object_colour_ratio"]) == 3
+    assert (out / "crops.png").is_file()
     stages = {r["stage"] for p in out.rglob("*metrics.jsonl") for r in runlog.read_records(p)}
     assert {"demo", "reconstruct", "decompose", "estimate-light", "compose",
             "render-comp sop", "render-comp trace", "render-comp paste"} <= stages
@@ -167,6 +170,7 @@ def test_demo_tiny_end_to_end_report(tmp_path, capsys):
     imgs = inlined_images(text)
     assert len(imgs) >= 4                            # comparison, maps, preview, plots
     for caption in ("ground truth | ours (SOP) | ours (trace) | naive paste",
-                    "environment map: true | estimated", "Error against run time"):
+                    "environment map: true | estimated", "Error against run time",
+                    "full size, the frame with the most shadow", "Where the object was inserted"):
         assert caption in text
     assert "report:" in capsys.readouterr().out

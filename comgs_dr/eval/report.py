@@ -157,6 +157,20 @@ def _demo_section(d: dict) -> str:
                         [[v, m["psnr"], m["ssim"], m["frame_seconds"]] for v, m in comp.items()]))
         s.append(f"<p>SOP composition better than the naive paste on "
                  f"{d.get('sop_beats_paste_frames')}/{d.get('frames')} frames.</p>")
+    reg = {v: r for v, r in (d.get("region") or {}).items() if r}
+    if reg:
+        first = next(iter(reg.values()))
+        s += ["<h3>Where the object was inserted (the object + the truth's shadow)</h3>",
+              _table(["variant", "PSNR in the region [dB]", "shadow: ours / empty",
+                      "truth / empty", "shadow depth vs truth", "object colour / truth (R, G, B)"],
+                     [[v, r.get("psnr_region"), r.get("shadow_ratio"),
+                       r.get("shadow_ratio_truth"), r.get("shadow_depth"),
+                       ", ".join(f"{c:.2f}" for c in r.get("object_colour_ratio", []))]
+                      for v, r in reg.items()]),
+              f"<p>Shadow pixels: the {first.get('shadow_pixels', 0)} pixels (pooled over "
+              f"frames) where the truth is darker than 0.7 × its empty scene; depth "
+              f"(1 − ours) / (1 − truth): 1 is as dark as the truth. SOP better than the paste in the region on "
+              f"{d.get('sop_beats_paste_frames_region')}/{d.get('frames')} frames.</p>"]
     L = d.get("lighting")
     if L:
         rows = [[f"spheres {m}: si-RMSE", v["si_rmse"]] for m, v in L["spheres"].items()]
@@ -225,6 +239,10 @@ def _pictures(run_dir: Path, limit: int = 4) -> list[tuple[str, str]]:
     """[(caption, data uri)] of the folder's known pictures."""
     pics = []
     for name, cap in (("comparison.png", "ground truth | ours (SOP) | ours (trace) | naive paste"),
+                      ("crops.png", "full size, the frame with the most shadow: the shadow "
+                                    "and the object, truth | ours (SOP) | ours (trace) | paste"),
+                      ("shadow_profile.png", "the shadow's darkness along its axis: each "
+                                             "image's luminance over the truth's empty scene"),
                       ("envmaps.png", "environment map: true | estimated at the placement")):
         for p in sorted(run_dir.rglob(name)):
             pics.append((cap, png_data_uri(p)))

@@ -36,6 +36,7 @@ from comgs_dr.shading.deferred import rgba_tensor
 from comgs_dr.shading.shade import SAMPLINGS, ShadingConfig, ShadingPoints, shade
 from comgs_dr.shading.shadow import shadow_ratio
 from comgs_dr.shading.sun import split_sun
+from comgs_dr.shading.sun_shadow import SunShadowMap
 from comgs_dr.shading.visibility import NoVisibility, SopVisibility, TraceVisibility
 from comgs_dr.sops.occlusion import region_box
 from comgs_dr.sops.probes import ProbeSet
@@ -121,10 +122,15 @@ class CompositeBase(AttachedRender):
          occlusion ray (Default: 8 / 32 / 32)
      * - sun_rays
        - |int|
-       - Shadow rays per scene pixel traced toward the dominant compact source of an
-         object's map (:func:`comgs_dr.shading.sun.split_sun`: a sun holding ≥ 15 % of the
-         map's power); the probes (``sop``) keep the rest of the map. 0: the probes carry
+       - Shadow rays per scene pixel toward the dominant compact source of an object's map
+         (:func:`comgs_dr.shading.sun.split_sun`: a sun giving ≥ 3 % of the irradiance
+         facing it); the probes (``sop``) keep the rest of the map. 0: the probes carry
          the whole map (Default: 16)
+     * - sun_map_res
+       - |int|
+       - ``sop``: the sun rays look up a ``res``² shadow map traced once toward the sun
+         (:class:`comgs_dr.shading.sun_shadow.SunShadowMap`); 0: they are traced per pixel
+         (exact, 2–3× a frame's time). ``trace`` always traces them (Default: 512)
      * - shadow_normals
        - |string|
        - Normals of the scene's shadow receivers: ``probes`` (blended from the shadow-region
@@ -179,6 +185,10 @@ class CompositeBase(AttachedRender):
         self.sun_rays = int(props.get("sun_rays", 16))
         if self.sun_rays < 0:
             raise ValueError(f"comgs_composite: sun_rays must be ≥ 0, got {self.sun_rays}")
+        self.sun_map_res = int(props.get("sun_map_res", 512))
+        if self.sun_map_res != 0 and self.sun_map_res < 2:
+            raise ValueError(f"comgs_composite: sun_map_res must be 0 (trace) or ≥ 2, got "
+                             f"{self.sun_map_res}")
         self.region_factor = float(props.get("region_factor", 6.0))
         self.probe_k = int(props.get("probe_k", 8))
         self.max_hits = int(props.get("max_hits", 32))
@@ -257,22 +267,38 @@ class CompositeBase(AttachedRender):
                                      f"not baked")
                 st["shadow_vis"] = SopVisibility(sp.atlas(), st["shadow_grid"][0], sp.res,
                                                  self.probe_k)
+        sun_map = self.variant == "sop" and self.sun_map_res > 0
         needs_trace = self.variant == "trace" or any(
-            o["vis"] is None or o["sun"] is not None for o in st["objects"]) \
+            o["vis"] is None or (o["sun"] is not None and not sun_map) for o in st["objects"]) \
             and self.variant != "paste"
-        if needs_trace and objects:
+        suns = [o for o in st["objects"] if o["sun"] is not None]
+        occ_scene = None
+        if (needs_trace or suns) and objects:
             occ_scene = mi.load_dict({"type": "scene", **{
                 ids[j]: SurfelShapeBase.from_params(shapes[j].params, id=ids[j])
                 for j in objects}})
+        if needs_trace and objects:
             off = 0.01 * max(object_size(shapes[j].params) for j in objects)
             tv = TraceVisibility(occ_scene, off, self.trace_hits, self.colour_space)
             st["trace_vis"] = tv
             for o in st["objects"]:
                 if o["vis"] is None:
                     o["vis"] = tv
+        for o in suns:
+            o["sun_vis"] = st["trace_vis"] if not sun_map else self._sun_map(
+                occ_scene, o["sun"].direction, [shapes[j].params for j in objects])
         self._state = st
         self._geo.clear()
         return st
+
+    def _sun_map(self, occ_scene, direction, params):
+        """A :class:`SunShadowMap` over every object's surfels toward ``direction``."""
+        bounds = [object_bounds(p) for p in params]
+        lo = np.min([b[0] for b in bounds], 0)
+        hi = np.max([b[1] for b in bounds], 0)
+        radius = 0.5 * float(np.linalg.norm(hi - lo)) * 1.1 + 1e-6
+        return SunShadowMap(occ_scene, direction, (lo + hi) / 2, radius, self.sun_map_res,
+                            self.trace_hits)
 
     def _buffers(self, scene, sensor, st):
         version = tuple(getattr(s, "geometry_version", 0) for s in st["shapes"])
@@ -319,7 +345,7 @@ class CompositeBase(AttachedRender):
             if self.shadow_normals == "probes" and "shadow_grid" in st:
                 n = _probe_normals(st["shadow_grid"], x, n, self.probe_k)
             s = shadow_ratio(x, n, o["env"], vis, self.shadow_rays, seed + 7919 * (i + 1),
-                             sun=o["sun"], sun_visibility=st.get("trace_vis"),
+                             sun=o["sun"], sun_visibility=o.get("sun_vis"),
                              sun_rays=self.sun_rays)
             dr.scatter(S, s, pix)
         return S

@@ -7,7 +7,11 @@ scene), ``paste`` (the objects' step-1 radiance depth-composited, no relighting,
 shadows). Writes ``COMP_DIR/renders/<variant>/<basename>.png`` (8-bit sRGB) and, with
 ground truth (``GT_DIR/<basename>.png``), ``COMP_DIR/metrics_<variant>.json``: mean
 ``psnr``/``ssim``, ``frame_seconds`` (median over frames after the first, which includes
-kernel compilation; ``first_frame_seconds`` apart) and a per-frame list.
+kernel compilation; ``first_frame_seconds`` apart) and a per-frame list. Where the ground
+truth is a composition dataset's (``GT_DIR/../empty/<basename>.exr``, the scene without the
+objects, and ``GT_DIR/../mask/<basename>.png``, their pixels), ``region`` adds what a user
+looks at (``eval.comp_region``): PSNR in the object+shadow region, the shadow's darkness
+against the truth's and the object's mean colour per channel against the truth's.
 """
 from __future__ import annotations
 
@@ -26,6 +30,7 @@ from comgs_dr.core.colorspace import srgb_encode
 from comgs_dr.data import comp_folder
 from comgs_dr.data.images import read_image, write_png8
 from comgs_dr.integrators.comgs_composite import is_file_property
+from comgs_dr.eval import comp_region
 from comgs_dr.eval.metrics import psnr, ssim
 from comgs_dr.train.checkpoint import atomic_write_text
 
@@ -91,6 +96,7 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
             raise ValueError(f"render-comp: frame {c['name']} is {c['width']}×{c['height']} px, "
                              f"beyond the {MAX_SIDE // 2}² the hit buffer holds; give a "
                              f"smaller res")
+    regions = _region_truth(gt_dir, cams) if gt_dir is not None else {}
     extra = {"rays": int(rays), "shadow_rays": int(rays)} if rays else {}
     clip = comp_folder.clip_for(manifest, cams)        # scaled to the composition
     scene = load_comp_scene(comp_dir, variant, materials,
@@ -133,10 +139,16 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
         if c["name"] in gts:
             q = np.round(disp * 255.0) / 255.0          # score the written 8-bit image
             rec.update(psnr=psnr(q, gts[c["name"]]), ssim=ssim(q, gts[c["name"]]))
+        if c["name"] in regions:
+            rs = comp_region.frame_scores(q, gts[c["name"]], *regions[c["name"]])
+            rec["region"] = rs
+            if rs["region_pixels"]:
+                rec["psnr_region"] = -10 * np.log10(max(rs["region_mse"], 1e-12))
         frames.append(rec)
         runlog.append(comp_dir, runlog.record(stage, sum(f["seconds"] for f in frames),
                                               frame=i, **{k: v for k, v in rec.items()
-                                                          if k in ("psnr", "ssim")}), name=jsonl)
+                                                          if k in ("psnr", "ssim", "psnr_region")}),
+                      name=jsonl)
     times = [f["seconds"] for f in frames]
     summary = {"variant": variant, "cameras": str(cameras), "frames": len(frames),
                "resolution": list(size),
@@ -145,6 +157,24 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
     if gts:
         summary["psnr"] = float(np.mean([f["psnr"] for f in frames]))
         summary["ssim"] = float(np.mean([f["ssim"] for f in frames]))
+        if regions:
+            summary["region"] = comp_region.summarise([f.pop("region") for f in frames])
         atomic_write_text(comp_dir / f"metrics_{variant}.json", json.dumps(runlog.json_safe(summary), indent=1,
                                       allow_nan=False))
     return summary
+
+
+def _region_truth(gt_dir, cams) -> dict:
+    """{frame: (empty linear [H, W, 3], object mask [H, W])} where the composition dataset
+    beside ``gt_dir`` has both for every frame; {} otherwise (region scores left out)."""
+    from comgs_dr.core.exr import read_image as read_exr
+    root = Path(gt_dir).parent
+    paths = {c["name"]: (root / "empty" / f"{c['name']}.exr", root / "mask" / f"{c['name']}.png")
+             for c in cams}
+    if not all(e.is_file() and m.is_file() for e, m in paths.values()):
+        return {}
+    out = {}
+    for name, (e, m) in paths.items():
+        mask = read_image(m)
+        out[name] = (read_exr(e)[..., :3], (mask[..., 0] if mask.ndim == 3 else mask) > 0.5)
+    return out
