@@ -41,3 +41,4 @@ def test_demo_config_checks_the_object_light():
     with pytest.raises(ValueError, match="object_light"):
         DemoConfig(object_light="studio")
     assert cli.main(["demo", "--object-light", "studio"]) == 2
+    assert cli.main(["demo", "--sky-views", "-1", "--out", "/nonexistent/demo"]) == 2

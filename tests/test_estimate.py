@@ -89,8 +89,11 @@ def test_end_to_end_outputs(result, params):
     assert 0.42 < r["coverage"] < 0.7                      # the ground + a panel
     assert r["meta"]["label"] == "indoor" and r["meta"]["evs"] == [0.0, -2.5, -5.0]
     assert r["meta"]["backend"] == "NetworkBackend" and r["meta"]["nonfinite_pixels"] == 0
+    sun = r["meta"]["sun_from_shadows"]          # fitted and reported, even when unusable
+    assert isinstance(sun["action"], str) and isinstance(sun["usable"], bool)
     t = r["timings"]
-    for k in ("load", "trace", "completion", "fusion", "octahedral", "lights", "total"):
+    for k in ("load", "trace", "completion", "fusion", "sun_fit", "octahedral", "lights",
+              "total"):
         assert t[k] >= 0.0, k
     assert t["total"] >= sum(v for k, v in t.items() if k != "total")
     # the lower hemisphere is observed: mask ~1 below the horizon, 0 straight up

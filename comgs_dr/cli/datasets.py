@@ -291,6 +291,10 @@ def _add_demo(sub) -> None:
     p.add_argument("--object-light", choices=("learnt", "known"), default="learnt",
                    help="step 2 learns the object's capture light (default) or takes the known "
                         "studio map (decompose --env-file)")
+    p.add_argument("--sky-views", type=int, dest="sky_views", metavar="N",
+                   help="scene capture views over the horizon that see the sky and the sun "
+                        "(default: the preset's; 0: a capture that never looks at the sun, "
+                        "whose lighting must take the sun from the scene's shadows)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_demo)
 
@@ -300,6 +304,8 @@ def _cmd_demo(args) -> int:
                               object_light=args.object_light)
     if args.res is not None:
         cfg = dataclasses.replace(cfg, resolution=args.res)
+    if args.sky_views is not None:
+        cfg = dataclasses.replace(cfg, sky_views=args.sky_views)
     s = run_demo(cfg)
     print(f"[{s['variant']}] composition of {s['frames']} test frames against path-traced ground "
           f"truth ({cfg.resolution}px):")

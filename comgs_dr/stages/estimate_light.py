@@ -47,7 +47,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core.equirect import coverage, pixel_solid_angles
-from comgs_dr.lighting import envmap, hdr, scene_label
+from comgs_dr.lighting import envmap, hdr, scene_label, sun_fit
 from comgs_dr.lighting import lights as light_head
 from comgs_dr.lighting.lights import TRUST_BRACKETS
 from comgs_dr.lighting.backends import default_backend
@@ -102,6 +102,10 @@ class EstimateConfig:
     clipped_max_texels: float = float("inf")  # the step-1 record of clipped sky
                                     # (``add_background``) is applied to its connected parts
                                     # up to this many background texels (inf: all, 0: none)
+    sun_from_shadows: str = "auto"  # "auto": fit a sun to the scene's own cast shadows
+                                    # (``lighting.sun_fit``) and add it where the panorama
+                                    # did not observe its direction; "off"
+    sun_radius_deg: float = 1.0     # angular radius of the sun added from the shadows
 
     def validate(self) -> None:
         if self.label not in scene_label.LABEL_CHOICES:
@@ -147,6 +151,13 @@ class EstimateConfig:
                 or any(isinstance(v, bool) or int(v) != v or v < 1 for v in self.net_resolution)):
             raise ValueError(f"EstimateConfig.net_resolution must be two integers >= 1 (H, W), "
                              f"got {self.net_resolution!r}")
+
+        if self.sun_from_shadows not in ("auto", "off"):
+            raise ValueError(f"EstimateConfig.sun_from_shadows must be 'auto' or 'off', got "
+                             f"{self.sun_from_shadows!r}")
+        if isinstance(self.sun_radius_deg, bool) or not 0.0 < float(self.sun_radius_deg) <= 10.0:
+            raise ValueError(f"EstimateConfig.sun_radius_deg must be in (0, 10], got "
+                             f"{self.sun_radius_deg!r}")
 
     def panorama_config(self, colour_space: str):
         return PanoramaConfig(width=self.width, height=self.height, max_hits=self.max_hits,
@@ -334,6 +345,10 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     timings["light_head"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    radiance, sun = _sun_from_shadows(scene, space, radiance, mask > 0.5, cfg)
+    timings["sun_fit"] = time.perf_counter() - t
+
+    t = time.perf_counter()
     oct_map = envmap.equirect_to_oct_np(radiance, int(cfg.oct_res)).astype(np.float32)
     timings["octahedral"] = time.perf_counter() - t
     t = time.perf_counter()
@@ -356,6 +371,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     meta["scene_label_model"] = str(cfg.scene_label) if p_outdoor is not None else None
     meta["light_trust_brackets"] = None if head is None else float(cfg.light_trust_brackets)
     meta["light_head_block"] = f             # the head read the panorama in f×f blocks
+    meta["sun_from_shadows"] = sun
     dom = meta["light_dominance"] = light_head.dominance(regions)
     if dom is not None and dom < light_head.DOMINANCE_MARGIN:
         log.warning("estimate_light: the strongest observed clipped light is %.2fx the next: "
@@ -364,6 +380,26 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
             "input": {"rgb": rgb, "normal": normal, "mask": mask},
             "lights": lights, "lobes": lobes, "light_regions": regions, "coverage": cov,
             "timings": timings, "meta": meta}
+
+
+def _sun_from_shadows(scene, space: str, radiance, observed, cfg: EstimateConfig):
+    """(radiance, record): the panorama with the sun fitted to the scene's cast shadows
+    added where it did not observe it (``lighting.sun_fit``), and what was found and done
+    (None when off)."""
+    if cfg.sun_from_shadows == "off":
+        return radiance, None
+    shapes = [sh for sh in scene.shapes() if hasattr(sh, "params")]
+    if len(shapes) != 1:
+        return radiance, {"action": f"skipped: {len(shapes)} surfels shapes (one expected)"}
+    fit = sun_fit.fit_sun_in_scene(scene, shapes[0].params, space)
+    rec = fit.as_dict()
+    if not fit.usable:
+        log.info("estimate_light: no sun from the scene's shadows: %s", fit.reason)
+        rec["action"] = "none: " + fit.reason
+        return radiance, rec
+    radiance, rec["action"] = sun_fit.add_sun(radiance, observed, fit, cfg.sun_radius_deg)
+    log.info("estimate_light: sun from the scene's shadows (%s): %s", fit.reason, rec["action"])
+    return np.asarray(radiance, np.float32), rec
 
 
 def _background_dir(spec: str, source) -> Path | None:

@@ -1,0 +1,113 @@
+"""The sun from the scene's own cast shadows (lighting.sun_fit): a ground with a block whose
+surfel colours are a known sun's shading (visibility from the analytic box, not from our
+tracer), and the same ground with no caster; the fusion into a panorama."""
+import numpy as np
+import pytest
+
+from comgs_dr.lighting import sun_fit as sf
+
+SUN = np.array([np.cos(np.radians(35)) * np.cos(np.radians(40)),
+                np.cos(np.radians(35)) * np.sin(np.radians(40)), np.sin(np.radians(35))])
+K_TRUE = 4.0
+LO, HI = np.array([-0.25, -0.25, 0.0]), np.array([0.25, 0.25, 0.6])
+
+
+def _box_hit(o, d):
+    inv = 1.0 / np.where(np.abs(d) < 1e-12, 1e-12, d)
+    t0, t1 = (LO - o) * inv, (HI - o) * inv
+    t_near, t_far = np.minimum(t0, t1).max(1), np.maximum(t0, t1).min(1)
+    return t_far > np.maximum(t_near, 0.0)
+
+
+def _scene(caster: bool, seed=0):
+    """Surfels of a textured 3×3 ground (+ the block) shaded by SUN and a uniform sky:
+    L = ρ/π (a + k V cos), a the sky's visible fraction past the block."""
+    import trimesh
+
+    from comgs_dr.core.colorspace import srgb_encode
+    from comgs_dr.surfels.from_mesh import from_mesh
+    from comgs_dr.surfels.io import quat_to_matrix
+    from comgs_dr.surfels.kernel import SH_C0
+    from comgs_dr.surfels.params import SurfelParams
+    from comgs_dr.surfels.scene import gbuffer_scene
+    parts = [trimesh.Trimesh([[-1.5, -1.5, 0], [1.5, -1.5, 0], [1.5, 1.5, 0], [-1.5, 1.5, 0]],
+                             [[0, 1, 2], [0, 2, 3]])]
+    if caster:
+        parts.append(trimesh.creation.box(extents=HI - LO).apply_translation((LO + HI) / 2))
+    d = from_mesh(trimesh.util.concatenate(parts), 9000, seed=seed, opacity=0.99).to_numpy()
+    x = d["means"].astype(np.float64)
+    n = quat_to_matrix(d["quats"])[:, :, 2]
+    n *= np.where(n[:, 2:3] < 0, -1.0, 1.0)
+    V = np.ones(len(x)) if not caster else (~_box_hit(x + 1e-3 * n, np.tile(SUN, (len(x), 1))))
+    # the sky term: a uniform sky seen past the box (cosine-weighted, 64 directions)
+    sky = np.ones(len(x))
+    if caster:
+        dirs = sf.fibonacci_hemisphere(64)
+        w = np.maximum(n @ dirs.T, 0.0)
+        seen = np.stack([~_box_hit(x + 1e-3 * n, np.tile(d, (len(x), 1))) for d in dirs], 1)
+        sky = (w * seen).sum(1) / np.maximum(w.sum(1), 1e-12)
+    rho = np.random.default_rng(seed).uniform(0.25, 0.6, (len(x), 1)) * [[1.0, 0.9, 0.8]]
+    L = rho / np.pi * (sky + K_TRUE * V * np.maximum(n @ SUN, 0))[:, None] * 0.5
+    d["sh"][:, 0] = (srgb_encode(np.clip(L, 0, 1)) - 0.5) / SH_C0
+    p = SurfelParams.from_numpy(**d)
+    return gbuffer_scene({"scene": p}, [], targets="weight"), p
+
+
+CFG = sf.SunFitConfig(points=2000, directions=96, refine=24)
+
+
+def test_the_sun_is_found_from_a_block_shadow_and_not_invented_without_one():
+    sc, p = _scene(True)
+    fit = sf.fit_sun_in_scene(sc, p, "srgb", CFG)
+    assert fit.usable, fit.reason
+    # measured 4.1° and k 4.51 (+13 %) with these 2000 receivers, 4.7° / 4.14 with 4000
+    assert np.degrees(np.arccos(np.clip(fit.direction @ SUN, -1, 1))) < 6.0
+    assert fit.k == pytest.approx(K_TRUE, rel=0.25)
+    np.testing.assert_allclose(fit.k_rgb, fit.k, rtol=0.05)       # a grey sun over a grey sky
+    assert 0.02 < fit.shadowed < 0.2 and fit.z > 2 * fit.rival
+    sc, p = _scene(False)
+    none = sf.fit_sun_in_scene(sc, p, "srgb", CFG)
+    assert not none.usable and "no usable cast shadow" in none.reason
+
+
+def test_add_sun_supplies_what_the_panorama_did_not_see():
+    from comgs_dr.core.equirect import equirect_directions, solid_angle_image
+    h, w = 64, 128
+    dirs = equirect_directions(h, w)
+    sky = np.where(dirs[..., 2:3] > 0, 0.5, 0.1) * np.ones(3)
+    guessed = sky.copy()
+    guessed[(dirs @ -SUN) > np.cos(np.radians(8)) - 1 + 1] = 1.0        # no-op guard
+    far = _unit(np.array([-0.6, -0.4, 0.5]))
+    guessed[(dirs @ far) > np.cos(np.radians(5))] = 40.0               # a guessed sun elsewhere
+    fit = sf.SunFit(SUN, 3.0, np.array([3.0, 3.0, 3.0]), 20.0, 5.0, 0.1, True, "", 100, 0.0)
+    unseen = np.zeros((h, w), bool)
+    out, what = sf.add_sun(guessed, unseen, fit, radius_deg=2.0)
+    assert what.startswith("added")
+    assert out[(dirs @ far) > np.cos(np.radians(5))].max() == pytest.approx(0.5)
+    e_up = sf.up_irradiance(sky)
+    cos = np.maximum(dirs @ SUN, 0) * solid_angle_image(h, w)
+    e_sun = np.einsum("hwc,hw->c", out - sky, cos)
+    np.testing.assert_allclose(e_sun, 3.0 * e_up * (SUN @ SUN), rtol=0.1)   # k × E_up, facing d
+    seen = np.ones((h, w), bool)
+    kept, what = sf.add_sun(guessed, seen, fit)
+    assert kept is guessed and what.startswith("kept")
+
+
+def _unit(v):
+    return v / np.linalg.norm(v)
+
+
+def test_grid_and_config_checks():
+    d = sf.fibonacci_hemisphere(200, 5.0)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
+    assert d[:, 2].min() >= np.sin(np.radians(5.0)) - 1e-12
+    with pytest.raises(ValueError, match="radius_frac"):
+        sf.SunFitConfig(radius_frac=0.0).validate()
+    from comgs_dr.stages.estimate_light import EstimateConfig
+    with pytest.raises(ValueError, match="sun_from_shadows"):
+        EstimateConfig(sun_from_shadows="maybe").validate()
+    with pytest.raises(ValueError, match="sun_radius_deg"):
+        EstimateConfig(sun_radius_deg=0.0).validate()
+    few = sf.fit_sun(np.zeros((10, 3)), np.tile([0, 0, 1.0], (10, 1)), np.ones((10, 3)),
+                     lambda d: np.ones(10))
+    assert not few.usable and "receivers" in few.reason
