@@ -53,6 +53,7 @@ class DemoConfig:
     ``tiny`` (tests and CI: about a minute; numbers meaningless)."""
     out_dir: str = "out/demo"
     resolution: int = 64
+    comp_resolution: int | None = None          # the composition frames (None: resolution)
     scene_views: int = 40
     object_views: int = 36
     test_views: int = 4
@@ -86,6 +87,11 @@ class DemoConfig:
             raise ValueError(f"DemoConfig.object_light must be learnt or known, got "
                              f"{self.object_light!r}")
         lows = {"resolution": 8, "sfm_points": 0, "seed": 0, "sky_views": 0, "probe_height": 4}
+        if self.comp_resolution is not None and (isinstance(self.comp_resolution, bool) or not
+                                                 isinstance(self.comp_resolution, int)
+                                                 or self.comp_resolution < 8):
+            raise ValueError(f"DemoConfig.comp_resolution must be None or an integer >= 8, "
+                             f"got {self.comp_resolution!r}")
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             if f.type in (int, "int") and (isinstance(v, bool) or not isinstance(v, int)
@@ -96,7 +102,7 @@ class DemoConfig:
 
 PRESETS = {
     "default": DemoConfig(),
-    "tiny": DemoConfig(resolution=24, scene_views=8, sky_views=2, object_views=8, test_views=2,
+    "tiny": DemoConfig(resolution=24, comp_resolution=32, scene_views=8, sky_views=2, object_views=8, test_views=2,
                        spp=4,
                        sfm_points=800, scene_iterations=30, object_iterations=30,
                        material_iterations=10, probes=200, shadow_probes=150, rays=16,
@@ -199,7 +205,8 @@ def run_demo(cfg: DemoConfig) -> dict:
         ds = out / "dataset"
         make_composition_dataset(CompositionDatasetConfig(
             out_dir=ds, objects=(str(mesh),), scene_map=sky, object_map=studio,
-            resolution=cfg.resolution, scene_views=cfg.scene_views,
+            resolution=cfg.resolution, comp_resolution=cfg.comp_resolution,
+            scene_views=cfg.scene_views,
             object_views=cfg.object_views, test_views=cfg.test_views, spp=cfg.spp,
             sfm_points=cfg.sfm_points, seed=cfg.seed, path_material=OBJECT_MATERIAL,
             scene_elevation_deg=cfg.scene_elevation_deg, sky_views=cfg.sky_views,

@@ -163,6 +163,8 @@ def test_demo_tiny_end_to_end_report(tmp_path, capsys):
     sop = s["region"]["sop"]                         # what a user looks at, scored
     assert math.isfinite(sop["psnr_region"]) and len(sop["object_colour_ratio"]) == 3
     assert (out / "crops.png").is_file()
+    frame = Image.open(out / "comp" / "renders" / "sop" / "r_000.png")
+    assert frame.size == (32, 32)                    # composites at their own size (captures 24)
     stages = {r["stage"] for p in out.rglob("*metrics.jsonl") for r in runlog.read_records(p)}
     assert {"demo", "reconstruct", "decompose", "estimate-light", "compose",
             "render-comp sop", "render-comp trace", "render-comp paste"} <= stages

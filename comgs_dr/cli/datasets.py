@@ -125,6 +125,8 @@ def _add_make_dataset(sub) -> None:
                    help="HDR map of the object captures (default blender_studio.exr)")
     c.add_argument("--res", type=int, dest="resolution", metavar="R",
                    help="image side in pixels (default 96)")
+    c.add_argument("--comp-res", type=int, dest="comp_resolution", metavar="R",
+                   help="side of the composites (comp/: gt, empty, mask; default: --res)")
     c.add_argument("--scene-views", type=int, dest="scene_views", metavar="N",
                    help="scene training views (default 64)")
     c.add_argument("--object-views", type=int, dest="object_views", metavar="N",
@@ -255,7 +257,7 @@ def _make_composition(args) -> int:
     overrides = {k: getattr(args, k) for k in
                  ("objects", "scene_map", "object_map", "resolution", "scene_views", "object_views",
                   "test_views", "spp", "sfm_points", "seed", "sky_views", "ground_half",
-                  "sun_view")
+                  "sun_view", "comp_resolution")
                  if getattr(args, k, None) is not None}
     from comgs_dr.data.placement_probe import MAX_HEIGHT, write_probes
     if not 0 <= args.probe_height <= MAX_HEIGHT:
@@ -287,7 +289,9 @@ def _add_demo(sub) -> None:
     p.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
     p.add_argument("--preset", choices=sorted(DEMO_PRESETS), default="default",
                    help="default: a few minutes on 2 cores; tiny: a smoke test (~1 min)")
-    p.add_argument("--res", type=int, help="image side (default: the preset's)")
+    p.add_argument("--res", type=int, help="side of the captures (default: the preset's)")
+    p.add_argument("--comp-res", type=int, dest="comp_res",
+                   help="side of the composition frames (default: the preset's)")
     p.add_argument("--object-light", choices=("learnt", "known"), default="learnt",
                    help="step 2 learns the object's capture light (default) or takes the known "
                         "studio map (decompose --env-file)")
@@ -306,9 +310,11 @@ def _cmd_demo(args) -> int:
         cfg = dataclasses.replace(cfg, resolution=args.res)
     if args.sky_views is not None:
         cfg = dataclasses.replace(cfg, sky_views=args.sky_views)
+    if args.comp_res is not None:
+        cfg = dataclasses.replace(cfg, comp_resolution=args.comp_res)
     s = run_demo(cfg)
     print(f"[{s['variant']}] composition of {s['frames']} test frames against path-traced ground "
-          f"truth ({cfg.resolution}px):")
+          f"truth ({cfg.comp_resolution or cfg.resolution}px; captures {cfg.resolution}px):")
     print(f"{'variant':<10}{'PSNR':>8}{'SSIM':>8}{'s/frame':>10}")
     for v, m in s["composition"].items():
         print(f"{v:<10}{m['psnr']:>8.2f}{m['ssim']:>8.4f}{m['frame_seconds']:>10.3f}")

@@ -75,6 +75,8 @@ class CompositionDatasetConfig:
     scene_map: str | Path = "blender_sunrise.exr"
     object_map: str | Path = "blender_studio.exr"
     resolution: int = 96
+    comp_resolution: int | None = None   # the composites' side (None: ``resolution``): the
+                                         # evaluation may look closer than the captures
     scene_views: int = 64
     object_views: int = 48
     test_views: int = 8
@@ -117,7 +119,8 @@ class CompositionDatasetConfig:
                 raise ValueError(f"unknown object {o!r}: use one of {', '.join(SHARED_OBJECTS)} "
                                  "or a path to an .obj/.ply mesh")
         bounds = {"scene_views": 1, "object_views": 1, "test_views": 1, "spp": 1, "max_depth": 1,
-                  "resolution": 8, "sfm_points": 0, "spp_test": 1, "sky_views": 0}
+                  "resolution": 8, "sfm_points": 0, "spp_test": 1, "sky_views": 0,
+                  "comp_resolution": 8}
         for name, lo in bounds.items():
             v = getattr(self, name)
             if v is not None and int(v) < lo:
@@ -419,19 +422,22 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
         for name, o in objects.items()}
     comp_cams = spiral_cameras(cfg.test_views, centre, comp_radius,
                                azimuth0_deg=az + 90.0)
-    full = SceneRenderer(scene_dict(cfg, env, textures, layout, specs))
+    ccfg = dataclasses.replace(cfg, resolution=cfg.comp_resolution or cfg.resolution)
+    full = SceneRenderer(scene_dict(ccfg, env, textures, layout, specs))
+    empty_c = empty if ccfg.resolution == cfg.resolution else \
+        SceneRenderer(scene_dict(ccfg, env, textures, layout))
     for sub in ("gt", "empty", "mask"):
         (out / "comp" / sub).mkdir(parents=True, exist_ok=True)
     for i, cam in enumerate(syn._bar(comp_cams, "composites", progress)):
         base = f"r_{i:03d}"
-        for r, sub in ((full, "gt"), (empty, "empty")):
+        for r, sub in ((full, "gt"), (empty_c, "empty")):
             write_opaque(out / "comp" / sub / base,
                          r.radiance(cam["to_world_mitsuba"], spp_test, seed(i, 2)), exr=True)
         write_png8(out / "comp" / "mask" / f"{base}.png", full.coverage(cam["to_world_mitsuba"]))
         cam.update(file_path=f"./gt/{base}", empty_path=f"./empty/{base}",
                    mask_path=f"./mask/{base}.png", radiance_path=f"./gt/{base}.exr",
                    empty_radiance_path=f"./empty/{base}.exr")
-    _write_transforms(out / "comp", cfg, {"test": comp_cams})
+    _write_transforms(out / "comp", ccfg, {"test": comp_cams})
     seconds["comp"] = time.perf_counter() - t
     seconds["total"] = time.perf_counter() - t0
 
@@ -472,6 +478,7 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
                       "normalised by object_to_world) to the scene world; a placed mesh file's "
                       "to_world = placement @ object_to_world (= mesh_to_world)",
         "comp": {"dir": "comp", "n_test": cfg.test_views, "centre": centre.tolist(),
+                 "resolution": [ccfg.resolution, ccfg.resolution],
                  "camera_radius": comp_radius, "cameras": "spiral: elevation 30 -> 60 deg, one "
                  "turn, looking at centre", "noise": "gt and empty of a frame share the seed"},
         "render": {"integrator": "path", "max_depth": cfg.max_depth, "fov_deg": cfg.fov_deg,
