@@ -702,3 +702,44 @@ def test_receivers_take_the_shadow_probes_normals_by_default(sphere_over_plane, 
     n = np.asarray(_probe_normals(grid, x, own, 8)).T
     np.testing.assert_allclose(n[0], lean, atol=1e-5)
     np.testing.assert_allclose(n[1], [0.0, 0.6, 0.8], atol=1e-6)
+
+
+def test_shadows_darken_the_sky_seen_through_a_translucent_ground(tmp_path):
+    """Step 1 fits a ground pixel as its surfels plus T_final · sky; the shadow darkens that
+    whole pixel: sop / noshadow is the same with the sky as without it (the sky showed
+    through the shadow of a ground a few percent transparent, lightening it)."""
+    from comgs_dr.stages.compose import ComposeConfig, compose
+    from comgs_dr.stages.render_comp import load_comp_scene
+    from comgs_dr.train import background as bgenv
+    from comgs_dr.train.run import write_run_info
+    data = _nerf_folder(tmp_path / "data")
+    run = tmp_path / "scene_run"
+    write_run_info(run, data, "scene", 1, False)
+    g = plane(n=30).to_numpy()
+    g["opacity_logit"][:] = 0.0                               # each surfel half transparent
+    save_ply(SurfelParams.from_numpy(**g), str(run / "point_cloud.ply"))
+    d = tmp_path / "obj"
+    d.mkdir()
+    p = ball((0, 0, 0), 0.3, (0.8, 0.2, 0.2), n=600)
+    save_ply(p, str(d / "point_cloud.ply"))
+    _probes_for(p, count=60).save(d / "probes.npz")
+    low = np.array([0.85, -0.3, 0.43]) / np.linalg.norm([0.85, -0.3, 0.43])   # a long shadow
+    em.write_exr(tmp_path / "env.exr", sun_map(32, direction=low), "octahedral")
+    write_placements(tmp_path / "t.json", {"obj": Similarity(1.0, np.eye(3), np.array([0, 0, 0.3]))})
+    bgenv.save(run, np.full((16, 16, 3), 0.9), np.ones((16, 16)))          # a bright sky
+    cfg = ComposeConfig(shadow=occ.ShadowConfig(count=100, res=8, supersample=1),
+                        scene_views=4, min_consistent=1)
+    out = tmp_path / "comp"
+    compose(run, {"obj": d}, tmp_path / "t.json", out, env=tmp_path / "env.exr", cfg=cfg,
+            progress=False)
+    sensor = perspective([-2.0, -3.0, 3.0], target=[-0.5, 0.0, 0.0], res=32, fov=60)
+    ratio = {}
+    for sky in (None, ""):
+        extra = {} if sky is None else {"sky": sky}
+        r = {v: np.array(mi.render(load_comp_scene(out, v, sensors=[sensor], **extra),
+                                   seed=1))[..., :3].mean(-1) for v in ("sop", "noshadow")}
+        ratio[sky] = r["sop"] / np.maximum(r["noshadow"], 1e-6)
+    ground = r["noshadow"] > 0.02                             # (the sky off: only the ground)
+    shade = ground & (ratio[""] < 0.9)                        # the ball's shadow on the ground
+    assert shade.sum() >= 5
+    np.testing.assert_allclose(ratio[None][shade], ratio[""][shade], atol=0.02)

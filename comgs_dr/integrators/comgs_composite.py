@@ -384,8 +384,16 @@ class CompositeBase(AttachedRender):
         h, w = buf.shape
         Ws = buf.weight[0]
         img = self._linear(buf.colour[0], Ws)                                # [H*W]
+        if "sky" in st:                            # T_final · sky, as step 1 rendered it
+            cover = dr.clip(sum(buf.weight[1:], Ws), 0.0, 1.0)
+            dirs, _ = camera_rays(sensor, w, h)
+            sky = st["sky"].eval_world(mi.Vector3f(dr.unravel(mi.Vector3f, dirs.array)))
+            img = img + (1.0 - cover) * self._linear(dr.clip(sky, 0.0, 1.0), mi.Float(1.0))
         S = self._shadow(buf, st, int(seed))
         if S is not None:
+            # the shadow darkens the whole pixel step 1 fitted, its T_final · sky included: a
+            # ground a few percent transparent showed the bright sky through its shadow
+            # (demo: S 0.50 in the truth's shadow pixels, the image 0.56 of the unshadowed)
             img = img * S
         self.sees_nothing = True    # no object pixel: nothing here depends on materials
         for o in st["objects"]:
@@ -398,11 +406,6 @@ class CompositeBase(AttachedRender):
             layer = dr.zeros(mi.Color3f, h * w)
             dr.scatter(layer, dr.gather(mi.Float, Wg, pix) * c, pix)
             img = img + layer
-        if "sky" in st:                            # T_final · sky, as step 1 rendered it
-            cover = dr.clip(sum(buf.weight[1:], Ws), 0.0, 1.0)
-            dirs, _ = camera_rays(sensor, w, h)
-            sky = st["sky"].eval_world(mi.Vector3f(dr.unravel(mi.Vector3f, dirs.array)))
-            img = img + (1.0 - cover) * self._linear(dr.clip(sky, 0.0, 1.0), mi.Float(1.0))
         if sensor.film().base_channels_count() == 4:
             cover = dr.clip(sum(buf.weight[1:], Ws), 0.0, 1.0)
             return rgba_tensor(img, cover, h, w)
