@@ -23,14 +23,16 @@ def main(argv=None):
     ap.add_argument("--cameras", type=Path, required=True, help="NeRF-synthetic transforms json")
     ap.add_argument("--res", type=int, nargs="+", default=[64, 128, 256, 512])
     ap.add_argument("--variants", nargs="+", default=["sop", "trace"])
-    ap.add_argument("--frames", type=int, default=2, help="cameras rendered per size (≥ 2)")
+    ap.add_argument("--frames", type=int, default=2,
+                    help="cameras rendered per size (1: the first frame's time, compilation "
+                         "included)")
     ap.add_argument("--out", type=Path, default=None, help="write the table as JSON here")
     a = ap.parse_args(argv)
     import comgs_dr
     comgs_dr.set_variant("llvm_ad_rgb")
     from comgs_dr.stages.render_comp import render_comp
     cams = json.loads(a.cameras.read_text())
-    cams["frames"] = cams["frames"][:max(a.frames, 2)]
+    cams["frames"] = cams["frames"][:max(a.frames, 1)]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         cam_file = Path(tmp) / "cameras.json"

@@ -44,7 +44,11 @@ def main(argv=None):
     ap.add_argument("--work", type=Path, default=Path("/tmp/compbench"))
     ap.add_argument("--objects", default="spot,teapot")
     ap.add_argument("--scene-map", default=None)
-    ap.add_argument("--res", type=int, default=96)
+    ap.add_argument("--res", type=int, default=96, help="side of the captures")
+    ap.add_argument("--comp-res", type=int, default=None,
+                    help="side of the composites (default --res; e.g. --res 128 --comp-res 256)")
+    ap.add_argument("--sky-views", type=int, default=None,
+                    help="scene views over the horizon (default: the dataset's, 0: none)")
     ap.add_argument("--test-views", type=int, default=8)
     ap.add_argument("--scene-iters", type=int, default=1500)
     ap.add_argument("--object-iters", type=int, default=1500)
@@ -67,6 +71,10 @@ def main(argv=None):
                "--test-views", a.test_views, "--quiet"]
         if a.scene_map:
             cmd += ["--scene-map", a.scene_map]
+        if a.comp_res:
+            cmd += ["--comp-res", a.comp_res]
+        if a.sky_views is not None:
+            cmd += ["--sky-views", a.sky_views]
         times["dataset"] = run(cmd, log)
     meta = json.loads((ds / "composition.json").read_text())
     names = list(meta["objects"])
@@ -113,6 +121,15 @@ def main(argv=None):
         r = rows[v]
         print(f"{v:<10}{r['psnr']:>8.2f}{r['ssim']:>8.4f}{r['frame_seconds']:>10.3f}"
               f"{1 / r['frame_seconds']:>8.2f}")
+    if all("region" in rows[v] for v in VARIANTS):
+        print(f"\nin the object+shadow region (eval.comp_region):\n{'variant':<10}{'PSNR':>8}"
+              f"{'shadow':>8}{'truth':>8}{'depth':>7}   object colour / truth")
+        for v in VARIANTS:
+            g = rows[v]["region"]
+            col = ", ".join(f"{c:.2f}" for c in g.get("object_colour_ratio", []))
+            print(f"{v:<10}{g['psnr_region']:>8.2f}{g.get('shadow_ratio', float('nan')):>8.3f}"
+                  f"{g.get('shadow_ratio_truth', float('nan')):>8.3f}"
+                  f"{g.get('shadow_depth', float('nan')):>7.2f}   {col}")
     print(f"trace / sop frame time: {rows['trace']['frame_seconds'] / rows['sop']['frame_seconds']:.2f}x;"
           f" sop - trace PSNR: {rows['sop']['psnr'] - rows['trace']['psnr']:+.2f} dB")
     t = edit["timings"]
