@@ -531,11 +531,12 @@ def test_compose_cli_reports_each_placements_auto_label(monkeypatch, tmp_path, c
     ``estimate_light`` with --label and prints the classifier's answer per placement."""
     from comgs_dr.cli import composition as C
     from comgs_dr.cli import main
-    calls, heads = [], []
+    calls, heads, suns = [], [], []
 
     def fake_estimate(ply, pos, cfg, backend):
         calls.append(cfg.label)
         heads.append(cfg.light_head)
+        suns.append(cfg.sun_from_shadows)
         return {"hdr": np.ones((2, 4, 3), np.float32),
                 "meta": {"label": "indoor", "p_outdoor": 0.12 if cfg.label == "auto" else None}}
 
@@ -567,11 +568,13 @@ def test_compose_cli_reports_each_placements_auto_label(monkeypatch, tmp_path, c
     assert main(args + ["--label", "outdoor"]) == 0
     assert calls[-1] == "outdoor" and "label auto" not in capsys.readouterr().out
     assert main(args + ["--light-head", "none"]) == 0 and heads[-1] == "none"
-    assert heads[0] == "default"
+    assert heads[0] == "default" and suns[0] == "auto"
+    assert main(args + ["--sun-from-shadows", "off"]) == 0 and suns[-1] == "off"
     assert main(args + ["--light-head", str(tmp_path / "h.pt")]) == 2         # missing head
     assert "light head not found" in capsys.readouterr().err
     for extra in (["--label", "indoor"], ["--scene-label", str(tmp_path / "m.json")],
-                  ["--weights", str(tmp_path / "w.pt")], ["--light-head", "none"]):
+                  ["--weights", str(tmp_path / "w.pt")], ["--light-head", "none"],
+                  ["--sun-from-shadows", "off"]):
         assert main(args + ["--env", str(tmp_path / "env.exr")] + extra) == 2
         assert "with --env the map is the light" in capsys.readouterr().err
     assert main(args + ["--scene-label", str(tmp_path / "m.json")]) == 2      # missing model

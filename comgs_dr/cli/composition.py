@@ -47,6 +47,11 @@ def _add_compose(sub) -> None:
                         "2k at 16² (20x fewer occlusion rays; shadows softer and "
                         "weaker, most under a low sun)")
     p.add_argument("--shadow-probes", type=int, metavar="N", help="shadow probes per object")
+    p.add_argument("--sun-from-shadows", choices=("auto", "off"), default=None,
+                   dest="sun_from_shadows",
+                   help="auto (default): a sun the scene capture did not see is fitted to the "
+                        "scene's cast shadows (lighting.sun_fit); off: the panorama alone; "
+                        "not with --env")
     p.add_argument("--label", choices=("auto", "unknown", "indoor", "outdoor"), default=None,
                    help="scene label for the lighting estimation (default auto: classified "
                    "from the traced panorama; not with --env)")
@@ -84,7 +89,8 @@ def _cmd_compose(args) -> int:
     estimator = None
     if args.env is not None:
         for flag, value in (("--label", args.label), ("--scene-label", args.scene_label),
-                            ("--weights", args.weights), ("--light-head", args.light_head)):
+                            ("--weights", args.weights), ("--light-head", args.light_head),
+                            ("--sun-from-shadows", args.sun_from_shadows)):
             if value is not None:
                 raise ValueError(f"{flag} sets up the lighting estimation; with --env the map "
                                  f"is the light and nothing is estimated")
@@ -92,7 +98,8 @@ def _cmd_compose(args) -> int:
         scene_ply = str(Path(args.scene_run) / "point_cloud.ply")
         ecfg = EstimateConfig(label=args.label or "auto",
                               scene_label=args.scene_label or "default",
-                              light_head=args.light_head or "default")
+                              light_head=args.light_head or "default",
+                              sun_from_shadows=args.sun_from_shadows or "auto")
         ecfg.validate()
         check_model_files(ecfg)
         if args.weights is not None and not Path(args.weights).is_file():
