@@ -12,14 +12,18 @@ K_TRUE = 4.0
 LO, HI = np.array([-0.25, -0.25, 0.0]), np.array([0.25, 0.25, 0.6])
 
 
-def _box_hit(o, d):
+def _box_hit(o, d, boxes=((LO, HI),)):
+    """[N] bool: the rays o + t d (t > 0) hit any of the axis-aligned ``boxes``."""
     inv = 1.0 / np.where(np.abs(d) < 1e-12, 1e-12, d)
-    t0, t1 = (LO - o) * inv, (HI - o) * inv
-    t_near, t_far = np.minimum(t0, t1).max(1), np.maximum(t0, t1).min(1)
-    return t_far > np.maximum(t_near, 0.0)
+    hit = np.zeros(len(o), bool)
+    for lo, hi in boxes:
+        t0, t1 = (np.asarray(lo) - o) * inv, (np.asarray(hi) - o) * inv
+        t_near, t_far = np.minimum(t0, t1).max(1), np.maximum(t0, t1).min(1)
+        hit |= t_far > np.maximum(t_near, 0.0)
+    return hit
 
 
-def _scene(caster: bool, seed=0):
+def _scene(caster: bool, seed=0, boxes=((LO, HI),)):
     """Surfels of a textured 3×3 ground (+ the block) shaded by SUN and a uniform sky:
     L = ρ/π (a + k V cos), a the sky's visible fraction past the block."""
     import trimesh
@@ -33,18 +37,22 @@ def _scene(caster: bool, seed=0):
     parts = [trimesh.Trimesh([[-1.5, -1.5, 0], [1.5, -1.5, 0], [1.5, 1.5, 0], [-1.5, 1.5, 0]],
                              [[0, 1, 2], [0, 2, 3]])]
     if caster:
-        parts.append(trimesh.creation.box(extents=HI - LO).apply_translation((LO + HI) / 2))
+        for lo, hi in boxes:
+            lo, hi = np.asarray(lo), np.asarray(hi)
+            parts.append(trimesh.creation.box(extents=hi - lo).apply_translation((lo + hi) / 2))
     d = from_mesh(trimesh.util.concatenate(parts), 9000, seed=seed, opacity=0.99).to_numpy()
     x = d["means"].astype(np.float64)
     n = quat_to_matrix(d["quats"])[:, :, 2]
     n *= np.where(n[:, 2:3] < 0, -1.0, 1.0)
-    V = np.ones(len(x)) if not caster else (~_box_hit(x + 1e-3 * n, np.tile(SUN, (len(x), 1))))
+    V = np.ones(len(x)) if not caster else \
+        ~_box_hit(x + 1e-3 * n, np.tile(SUN, (len(x), 1)), boxes)
     # the sky term: a uniform sky seen past the box (cosine-weighted, 64 directions)
     sky = np.ones(len(x))
     if caster:
         dirs = sf.fibonacci_hemisphere(64)
         w = np.maximum(n @ dirs.T, 0.0)
-        seen = np.stack([~_box_hit(x + 1e-3 * n, np.tile(d, (len(x), 1))) for d in dirs], 1)
+        seen = np.stack([~_box_hit(x + 1e-3 * n, np.tile(d, (len(x), 1)), boxes)
+                         for d in dirs], 1)
         sky = (w * seen).sum(1) / np.maximum(w.sum(1), 1e-12)
     rho = np.random.default_rng(seed).uniform(0.25, 0.6, (len(x), 1)) * [[1.0, 0.9, 0.8]]
     L = rho / np.pi * (sky + K_TRUE * V * np.maximum(n @ SUN, 0))[:, None] * 0.5
@@ -68,6 +76,17 @@ def test_the_sun_is_found_from_a_block_shadow_and_not_invented_without_one():
     sc, p = _scene(False)
     none = sf.fit_sun_in_scene(sc, p, "srgb", CFG)
     assert not none.usable and "no usable cast shadow" in none.reason
+
+
+def test_several_casters_agree_on_one_sun():
+    """A tall thin post and a low wide slab: two shadows of different shapes, one sun
+    (measured 4.2° and k 4.27)."""
+    boxes = (((-0.9, 0.5, 0.0), (-0.8, 0.6, 0.8)), ((0.3, -0.6, 0.0), (0.9, -0.2, 0.25)))
+    sc, p = _scene(True, seed=1, boxes=boxes)
+    fit = sf.fit_sun_in_scene(sc, p, "srgb", CFG)
+    assert fit.usable, fit.reason
+    assert np.degrees(np.arccos(np.clip(fit.direction @ SUN, -1, 1))) < 6.0
+    assert fit.k == pytest.approx(K_TRUE, rel=0.25)
 
 
 def test_add_sun_supplies_what_the_panorama_did_not_see():
