@@ -173,6 +173,7 @@ def test_demo_tiny_end_to_end_report(tmp_path, capsys):
     assert len(imgs) >= 4                            # comparison, maps, preview, plots
     for caption in ("ground truth | ours (SOP) | ours (trace) | naive paste",
                     "environment map: true | estimated", "Error against run time",
-                    "full size, the frame with the most shadow", "Where the object was inserted"):
+                    "full size, the frame with the most shadow", "Where the object was inserted",
+                    "sun from the scene&#x27;s shadows"):
         assert caption in text
     assert "report:" in capsys.readouterr().out

@@ -230,7 +230,9 @@ def _summaries(run_dir: Path) -> str:
             s += [f"<h2>Lighting estimate {html.escape(p.stem)}</h2>",
                   _table(["field", "value"],
                          [["coverage", meta.get("coverage")], ["backend", meta.get("backend")],
-                          ["position", meta.get("position")]]
+                          ["position", meta.get("position")],
+                          ["sun from the scene's shadows",
+                           (meta.get("sun_from_shadows") or {}).get("action", "off")]]
                          + [[f"{k} s", v] for k, v in e.get("timings", {}).items()])]
     return "\n".join(s)
 
