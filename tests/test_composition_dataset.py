@@ -191,11 +191,13 @@ def test_cli_path_objects_and_summary(tmp_path, capsys):
     mesh = shared_data_dir() / "meshes" / "suzanne.obj"
     code = cli.main(["make-dataset", "composition", "--out", str(tmp_path), "--objects",
                      f"teapot,{mesh}", "--scene-map", "kiara_1_dawn_1k.hdr", "--res", "16",
+                     "--comp-res", "24",
                      "--scene-views", "1", "--object-views", "1", "--test-views", "1",
                      "--spp", "2", "--points", "0", "--probe-height", "8", "--quiet"])
     assert code == 0, capsys.readouterr().err
     printed = capsys.readouterr().out
-    assert "composite test views" in printed and "2 placement probe(s)" in printed
+    assert "composite test views (24px; captures 16px)" in printed
+    assert "2 placement probe(s)" in printed
     from comgs_dr.lighting.envmap import read_envmap_file
     for name in ("teapot", "suzanne"):
         img, layout = read_envmap_file(tmp_path / "probes" / f"{name}.exr")

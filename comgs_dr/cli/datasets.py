@@ -271,8 +271,8 @@ def _make_composition(args) -> int:
     sec = s["seconds"]
     print(f"wrote scene ({s['n_scene_train']} train views), objects {', '.join(s['objects'])} "
           f"({s['n_object_train']} train views each) and {s['n_test']} composite test views "
-          f"({s['resolution']}px) to {s['out_dir']} in {sec['total']:.1f} s (scene "
-          f"{sec['scene']:.1f} s, objects {sum(sec['objects'].values()):.1f} s, composites "
+          f"({s['comp_resolution']}px; captures {s['resolution']}px) to {s['out_dir']} in "
+          f"{sec['total']:.1f} s (scene {sec['scene']:.1f} s, objects {sum(sec['objects'].values()):.1f} s, composites "
           f"{sec['comp']:.1f} s) [{s['variant']}]")
     return 0
 

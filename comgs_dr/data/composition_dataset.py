@@ -496,7 +496,8 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
     (out / "composition.json").write_text(json.dumps(meta, indent=2))
     return {"out_dir": str(out), "objects": list(objects), "n_scene_train": cfg.scene_views + cfg.sky_views,
             "n_test": cfg.test_views, "n_object_train": cfg.object_views,
-            "resolution": cfg.resolution, "seconds": seconds, "variant": variant}
+            "resolution": cfg.resolution, "comp_resolution": ccfg.resolution, "seconds": seconds,
+            "variant": variant}
 
 
 def _write_transforms(folder: Path, cfg, cams: dict) -> None:
