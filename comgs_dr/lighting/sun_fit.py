@@ -37,8 +37,17 @@ import dataclasses
 import logging
 import time
 
+import mitsuba as mi
 import numpy as np
 from scipy.spatial import cKDTree
+
+from comgs_dr.core.colorspace import srgb_decode
+from comgs_dr.core.equirect import equirect_directions, solid_angle_image
+from comgs_dr.core.hostarray import to_jit
+from comgs_dr.sops.occlusion import plane_normals
+from comgs_dr.surfels.io import quat_to_matrix
+from comgs_dr.surfels.kernel import SH_C0
+from comgs_dr.surfels.trace import trace_visibility
 
 log = logging.getLogger(__name__)
 
@@ -59,9 +68,10 @@ LUMA = np.array([0.2126, 0.7152, 0.0722])
 @dataclasses.dataclass
 class SunFitConfig:
     """``points``: receivers sampled; lit neighbours within ``radius_frac`` × the
-    receivers' extent are a shadowed receiver's reference; ``directions``: the coarse grid over the upper
-    hemisphere (above ``min_elevation_deg``), then ``refine`` directions within 1.5 coarse
-    spacings of the best ``refine_top``; ``max_hits``: surfels per traced pass."""
+    receivers' extent are a shadowed receiver's reference; ``directions``: the coarse grid
+    over the upper hemisphere (above ``min_elevation_deg``), then ``refine`` directions
+    drawn around the best ``refine_top`` (Gaussian, 0.75 coarse spacings); ``max_hits``:
+    surfels per traced pass."""
     points: int = 6000
     radius_frac: float = 0.05
     directions: int = 256
@@ -133,17 +143,17 @@ class _Fitter:
     """Shadow evidence per sun direction for one set of receivers (``visibility(d) -> V``)."""
 
     def __init__(self, x, n, L, visibility, cfg: SunFitConfig):
-        self.x, self.n, self.visibility, self.cfg = x, n, visibility, cfg
+        self.n, self.visibility = n, visibility
         self.extent = float(np.linalg.norm(np.ptp(x, 0)))
         self.logL = np.log(np.maximum(L, 1e-6))                               # [M, 3]
         self.lum = np.log(np.maximum(L @ LUMA, 1e-6))
         self.nbrs = cKDTree(x).query_ball_point(x, cfg.radius_frac * self.extent)
         self.cache = {}
 
-    def contrasts(self, V, cos, channel=None):
+    def contrasts(self, V, cos, per_channel: bool = False):
         """[S, C] log(median lit neighbours / receiver) of each receiver in the shadow
         (V < 0.5) with ≥ 3 lit ones (V > 0.5) within the radius, and their cos to the sun."""
-        val = self.lum[:, None] if channel is None else self.logL
+        val = self.logL if per_channel else self.lum[:, None]
         dark = np.flatnonzero((V < 0.5) & (cos > 0.05))
         lit = (V > 0.5) & (cos > 0.05)
         out, cs = [], []
@@ -169,7 +179,7 @@ class _Fitter:
 
     def k_rgb(self, d, V):
         """k per channel from the median contrast: log(1 + k cos) = median log ratio."""
-        c, cs = self.contrasts(V, self.n @ d, channel=True)
+        c, cs = self.contrasts(V, self.n @ d, per_channel=True)
         if len(c) < 5:
             return np.zeros(3)
         return np.maximum(np.expm1(np.median(c, 0)), 0.0) / max(float(np.median(cs)), 1e-3)
@@ -249,10 +259,6 @@ def _overlap(a: np.ndarray, b: np.ndarray) -> float:
 def traced_visibility(scene, x, n, offset: float, max_hits: int = 16):
     """``visibility(d)`` for :func:`fit_sun`: transmittance from ``x + offset n`` toward d
     through the surfels of ``scene`` (``surfels.trace``: every surfel composited)."""
-    import mitsuba as mi
-
-    from comgs_dr.core.hostarray import to_jit
-    from comgs_dr.surfels.trace import trace_visibility
     org = to_jit(mi.Point3f, (x + offset * n).astype(np.float32).T)
     m = len(x)
 
@@ -267,7 +273,6 @@ def traced_visibility(scene, x, n, offset: float, max_hits: int = 16):
 
 def up_irradiance(radiance_eq: np.ndarray) -> np.ndarray:
     """[3] irradiance of an equirect map on a surface facing +z."""
-    from comgs_dr.core.equirect import equirect_directions, solid_angle_image
     h, w = radiance_eq.shape[:2]
     cos = np.maximum(equirect_directions(h, w)[..., 2], 0.0)
     return np.einsum("hwc,hw->c", radiance_eq, cos * solid_angle_image(h, w))
@@ -285,7 +290,6 @@ def add_sun(radiance_eq: np.ndarray, observed: np.ndarray, fit: SunFit,
     than ``HOT_FACTOR`` × that median (a completion's guessed sun far from the one the shadows
     show would cast a second shadow), and a disk of ``radius_deg`` is added whose irradiance on a
     surface facing it is k_rgb × the map's E(up)."""
-    from comgs_dr.core.equirect import equirect_directions
     rad = np.array(radiance_eq, np.float64)
     h, w = rad.shape[:2]
     observed = np.asarray(observed, bool)
@@ -308,7 +312,6 @@ def add_sun(radiance_eq: np.ndarray, observed: np.ndarray, fit: SunFit,
     if not disk.any():                  # a disk smaller than a pixel: the nearest pixel
         disk = np.zeros((h, w), bool)
         disk.flat[int(np.argmax(cosd))] = True
-    from comgs_dr.core.equirect import solid_angle_image
     omega = float(solid_angle_image(h, w)[disk].sum())
     L = np.asarray(fit.k_rgb) * e_up / max(omega, 1e-12)
     rad[disk] += L
@@ -324,7 +327,6 @@ def fitted_normals(means, normals, opacity, neighbours: int = 8, radius_spacings
     distance to the ``neighbours``-th neighbour); the surfels' own orientations scatter (on
     the demo's scene step 1: 10–15 % of them within 25° of vertical where most of the scene
     is flat ground)."""
-    from comgs_dr.sops.occlusion import plane_normals
     ok = (opacity >= 0.5) & np.isfinite(means).all(1)
     if ok.sum() < 3:
         return normals
@@ -342,9 +344,6 @@ def fit_sun_in_scene(scene, params, colour_space: str = "srgb",
     """:func:`fit_sun` on a surfel scene: ``scene`` (Mitsuba, surfels only, for the shadow
     rays) and its ``params`` (``SurfelParams``: positions, orientations, opacities, the
     SH DC colour as the receivers' radiance, in ``colour_space`` 'srgb' or 'linear')."""
-    from comgs_dr.core.colorspace import srgb_decode
-    from comgs_dr.surfels.io import quat_to_matrix
-    from comgs_dr.surfels.kernel import SH_C0
     cfg = cfg or SunFitConfig()
     d = params.to_numpy()
     normals = quat_to_matrix(d["quats"])[:, :, 2]

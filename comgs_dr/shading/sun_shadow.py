@@ -25,6 +25,8 @@ for a sun of 2° radius).
 """
 from __future__ import annotations
 
+import time
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -70,7 +72,6 @@ class SunShadowMap:
 
     def _trace(self, scene, max_hits):
         """(T [res²], t̄ [res²]) as flat jit arrays, row-major (v rows, u columns)."""
-        import time
         t0 = time.perf_counter()
         res, R = self.res, self.R
         g = (np.arange(res) + 0.5) / res * 2.0 - 1.0
