@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import sys
 import typing
 
 #: Largest magnitude accepted for an integer flag (sizes and counts become 32-bit values
@@ -93,3 +94,42 @@ def _chosen_actions(parser: argparse.ArgumentParser, args: argparse.Namespace):
                 yield from _chosen_actions(sub, args)
         else:
             yield action
+
+
+class _DeprecatedVariant(argparse.Action):
+    """``--variant`` where it still names the Mitsuba variant: stores it and says once on
+    stderr that the flag is now ``--mitsuba-variant`` (kept so existing scripts run)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"{parser.prog}: --variant is now --mitsuba-variant (the old name still works)",
+              file=sys.stderr)
+        setattr(namespace, self.dest, values)
+
+
+def shared_options(*, out: dict | None = None, mitsuba_variant: bool = True,
+                   quiet: bool = True, variant_alias: bool = True) -> argparse.ArgumentParser:
+    """The flags every command spells the same way, as an argparse parent
+    (``subparsers.add_parser(name, parents=[shared_options(...)])``).
+
+    out: keyword arguments of ``--out`` (its ``required``/``default``/``metavar``/``help``
+        differ per command: a folder, a file); None: the command has no ``--out``.
+    mitsuba_variant: ``--mitsuba-variant NAME``, ``dest="mitsuba_variant"``, default
+        ``auto``; ``core.variant.set_variant`` checks the name (unknown or scalar: an error).
+    quiet: ``--quiet`` (no progress bars or per-step lines), ``dest="quiet"``.
+    variant_alias: also accept the old ``--variant`` for the Mitsuba variant (hidden, with a
+        note on stderr); False where ``--variant`` means something else (``render-comp``'s
+        composite variant)."""
+    p = argparse.ArgumentParser(add_help=False)
+    if out is not None:
+        p.add_argument("--out", **out)
+    if mitsuba_variant:
+        p.add_argument("--mitsuba-variant", dest="mitsuba_variant", default="auto",
+                       metavar="MITSUBA_VARIANT",
+                       help="Mitsuba variant: auto (default: cuda_ad_rgb when a GPU is "
+                            "present, else llvm_ad_rgb), llvm_ad_rgb, cuda_ad_rgb")
+        if variant_alias:
+            p.add_argument("--variant", dest="mitsuba_variant", action=_DeprecatedVariant,
+                           help=argparse.SUPPRESS)
+    if quiet:
+        p.add_argument("--quiet", action="store_true", help="no progress bars")
+    return p
