@@ -13,8 +13,7 @@ import drjit as dr
 import mitsuba as mi
 
 from comgs_dr.core.variant import mitsuba_ad_base, variant_class
-from comgs_dr.surfels import composite
-from comgs_dr.surfels import raster
+from comgs_dr.surfels import composite, raster
 
 METHODS = ("auto", "trace", "raster")
 TARGETS = ("color", "weight", "depth", "depth_unbiased", "normal", "albedo", "roughness", "metallic")

@@ -24,7 +24,6 @@ from comgs_dr.core.cameras import camera_rays
 from comgs_dr.core.octahedral import expand_mode
 from comgs_dr.shading.shade import ShadingConfig, ShadingPoints, shade
 from comgs_dr.surfels import composite
-from comgs_dr.surfels.composite import trace_composite
 from comgs_dr.surfels.kernel import clamp_closed
 
 
@@ -74,9 +73,9 @@ class DeferredPbr:
             ray = mi.Ray3f(mi.Point3f(dr.unravel(mi.Point3f, origins.array)),
                            mi.Vector3f(dr.unravel(mi.Vector3f, dirs.array)))
             eps = composite.auto_epsilon(self.scene, shapes)
-            hits, out, _, _ = trace_composite(self.scene, shapes, ray, self.max_hits, eps,
-                                              ("weight", "depth_unbiased", "normal"),
-                                              max_passes=16)
+            hits, out, _, _ = composite.trace_composite(
+                self.scene, shapes, ray, self.max_hits, eps, ("weight", "depth_unbiased", "normal"),
+                max_passes=16)
             K = hits.K                   # slots per ray over all passes
             W, D, N = out["weight"], out["depth_unbiased"], out["normal"]
             nrm = dr.norm(N)

@@ -33,7 +33,6 @@ import numpy as np
 
 from comgs_dr.core.hostarray import to_jit
 from comgs_dr.surfels import composite
-from comgs_dr.surfels.composite import trace_composite
 
 LEAD = 1.5          # the grid's plane lies LEAD × R from the centre, toward the sun
 
@@ -83,9 +82,9 @@ class SunShadowMap:
         with dr.suspend_grad():
             ray = mi.Ray3f(to_jit(mi.Point3f, org.astype(np.float32).T),
                            mi.Vector3f(*map(float, -self.d)))
-            _, out, _, _ = trace_composite(scene, shapes, ray, max_hits, eps,
-                                           ("weight", "depth_unbiased"), max_passes=64,
-                                           keep_hits=False)
+            _, out, _, _ = composite.trace_composite(scene, shapes, ray, max_hits, eps,
+                                                     ("weight", "depth_unbiased"), max_passes=64,
+                                                     keep_hits=False)
             W = dr.clip(out["weight"], 0.0, 1.0)
             depth = dr.select(W > 1e-6, out["depth_unbiased"], np.inf)
             T = 1.0 - W
