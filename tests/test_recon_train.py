@@ -169,3 +169,15 @@ def test_step1_is_scale_invariant(tiny_dataset, tmp_path):
         assert summary["diverged"] is None
     # float rounding makes the three trajectories differ slightly (measured spread: see below)
     assert max(got.values()) - min(got.values()) < 0.3, got
+
+
+def test_log_lerp_is_the_exponential_decay_bit_for_bit():
+    """train.schedule.log_lerp gives exactly the values of the formula step 1 inlined
+    before (positions' and the background's learning rates)."""
+    import math
+
+    from comgs_dr.train.schedule import log_lerp
+    for start, end in ((1.6e-4, 1.6e-6), (0.01, 0.001), (5e-3, 5e-3), (2.0, 3.0)):
+        for t in (0.0, 1e-7, 0.1, 1 / 3, 0.5, 0.999, 1.0):
+            old = math.exp((1 - t) * math.log(start) + t * math.log(end))
+            assert log_lerp(start, end, t) == old

@@ -40,6 +40,7 @@ from comgs_dr.train import losses as L
 from comgs_dr.train.density import DensityConfig
 from comgs_dr.train.strategy import DefaultStrategy, StepInfo, tan_half
 from comgs_dr.train.loop import BestState, finish, run_loop, zero_nonfinite_grads
+from comgs_dr.train.schedule import log_lerp
 
 log = logging.getLogger(__name__)
 
@@ -181,11 +182,6 @@ def scaled_density_schedule(iterations: int) -> dict:
     (2DGS: densify until 15k of 30k its, reset every 3k): densify until half of the run,
     reset the opacities at its quarter and half."""
     return dict(stop=max(1, iterations // 2), opacity_reset_interval=max(1, iterations // 4))
-
-
-def log_lerp(start: float, end: float, t: float) -> float:
-    """Exponential decay from ``start`` (t = 0) to ``end`` (t = 1): 3DGS's learning rates."""
-    return math.exp((1 - t) * math.log(start) + t * math.log(end))
 
 
 def _with_sh_degree(p: SurfelParams, degree: int) -> SurfelParams:
