@@ -450,3 +450,15 @@ def test_blend_backend_label_weights_run_only_the_members_needed():
     d = backends.default_backend()
     np.testing.assert_array_equal(d.weights_for("outdoor"), [1.0, 0.0])
     np.testing.assert_array_equal(d.weights_for("indoor"), [0.5, 0.5])
+
+
+def test_diffusers_from_dir_rejects_a_bad_embeddings_file(tmp_path):
+    """ev_embeddings.pt goes through lighting.torch_io.load_torch_file: an unreadable file or
+    one without xi_b / xi_d is a ValueError naming it (before any model is loaded)."""
+    emb = tmp_path / backends.DiffusersBackend.EMBEDDINGS_FILE
+    emb.write_bytes(b"not torch")
+    with pytest.raises(ValueError, match="ev_embeddings.pt: not a readable DiffusersBackend"):
+        backends.DiffusersBackend.from_dir(tmp_path)
+    torch.save({"xi_b": torch.zeros(2)}, emb)
+    with pytest.raises(ValueError, match="must hold a dict with 'xi_b' and 'xi_d'"):
+        backends.DiffusersBackend.from_dir(tmp_path)

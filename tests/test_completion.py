@@ -279,3 +279,23 @@ def test_v1_checkpoints_still_load(tmp_path):
     with pytest.raises(C.WeightsError, match="not supported"):
         C.load_weights(path)
 
+
+
+def test_load_torch_file_names_the_file_and_the_problem(tmp_path):
+    """lighting.torch_io.load_torch_file: the one weights_only loader behind the completion
+    net, the light head, the diffusion embeddings and train-completion's checkpoints."""
+    from comgs_dr.lighting.torch_io import load_torch_file
+    good = tmp_path / "good.pt"
+    torch.save({"format": "fmt/1", "x": torch.arange(3)}, good)
+    assert torch.equal(load_torch_file(good, "fmt/1", "thing")["x"], torch.arange(3))
+    with pytest.raises(ValueError, match=r"good\.pt: not a thing \(format 'fmt/2' expected\)"):
+        load_torch_file(good, "fmt/2", "thing")
+    plain = tmp_path / "plain.pt"
+    torch.save([1, 2], plain)
+    assert load_torch_file(plain, None, "thing") == [1, 2]          # no format to check
+    with pytest.raises(C.WeightsError, match="not a thing .*; start over$"):
+        load_torch_file(plain, "fmt/1", "thing", error=C.WeightsError, hint="; start over")
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not torch")
+    with pytest.raises(ValueError, match=r"junk\.pt: not a readable thing \(\w+Error: "):
+        load_torch_file(junk, "fmt/1", "thing")

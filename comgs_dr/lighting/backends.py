@@ -32,6 +32,7 @@ from comgs_dr.lighting.completion import (
     CompletionBackend,
     NetworkBackend,
 )
+from comgs_dr.lighting.torch_io import load_torch_file
 
 __all__ = ["FILL_KINDS", "FillBackend", "BlendBackend", "DEFAULT_WEIGHTS", "LABEL_WEIGHTS",
            "LABEL_COLOUR_WEIGHTS", "net_sh_blend",
@@ -381,11 +382,7 @@ class DiffusersBackend(CompletionBackend):
         p = Path(path)
         emb = p / cls.EMBEDDINGS_FILE
         if emb.is_file() and "xi_b" not in kwargs:
-            try:
-                d = torch.load(emb, map_location="cpu", weights_only=True)
-            except Exception as exc:  # noqa: BLE001 - any decoding failure means a bad file
-                raise ValueError(f"DiffusersBackend: {emb} is not readable "
-                                 f"({completion.torch_load_error(exc)})") from exc
+            d = load_torch_file(emb, None, "DiffusersBackend embeddings file")
             if not isinstance(d, dict) or not {"xi_b", "xi_d"} <= set(d):
                 raise ValueError(f"DiffusersBackend: {emb} must hold a dict with 'xi_b' and "
                                  f"'xi_d'")

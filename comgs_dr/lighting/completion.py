@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import abc
 import math
-import re
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import NamedTuple
@@ -41,6 +40,8 @@ import torch.nn.functional as F
 
 from comgs_dr.core.colorspace import srgb_decode, srgb_encode
 from comgs_dr.lighting.hdr import push_pull_fill
+from comgs_dr.lighting.torch_io import load_torch_file
+from comgs_dr.lighting.torch_io import torch_load_error  # noqa: F401 (stages.train_completion)
 
 __all__ = ["FORMAT_VERSION", "DEFAULT_EVS", "EV_MIN", "LABELS", "SATURATION", "CompletionConfig",
            "SphericalPad2d", "SConv2d", "FiLM", "ResBlock", "GlobalContext", "EVEmbedding",
@@ -367,16 +368,6 @@ def save_weights(model: CompletionNet, path) -> Path:
     return path
 
 
-def torch_load_error(exc: Exception) -> str:
-    """Why ``torch.load(weights_only=True)`` refused a file, in one line: its own message goes
-    on to advise ``weights_only=False``, which would run any code a foreign file holds."""
-    text = str(exc).strip()
-    m = re.search(r"WeightsUnpickler error:\s*(.+?)\s*(?:\n\n|$)", text, re.S)
-    reason = " ".join((m.group(1) if m else (text.splitlines() or [""])[0]).split())
-    reason = reason.split(". ")[0]             # its first sentence: the advice comes after
-    return f"{type(exc).__name__}: {reason}"
-
-
 def load_weights(path, config: CompletionConfig | None = None,
                  map_location="cpu") -> CompletionNet:
     """CompletionNet (eval mode) from ``save_weights``. FileNotFoundError if missing;
@@ -385,13 +376,7 @@ def load_weights(path, config: CompletionConfig | None = None,
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"completion weights not found: {path}")
-    try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as exc:
-        raise WeightsError(f"{path}: not a readable completion checkpoint "
-                           f"({torch_load_error(exc)})") from exc
-    if not isinstance(ckpt, dict) or ckpt.get("format") != _FORMAT:
-        raise WeightsError(f"{path}: not a completion checkpoint (format {_FORMAT!r} expected)")
+    ckpt = load_torch_file(path, _FORMAT, "completion checkpoint", map_location, WeightsError)
     if ckpt.get("version") not in SUPPORTED_VERSIONS:
         raise WeightsError(f"{path}: checkpoint version {ckpt.get('version')!r} is not "
                            f"supported (expected one of {SUPPORTED_VERSIONS})")

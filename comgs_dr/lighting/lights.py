@@ -57,12 +57,12 @@ import torch.nn as nn
 
 from comgs_dr.core.colorspace import LUMA
 from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
-from comgs_dr.lighting.completion import torch_load_error
 from comgs_dr.lighting.hdr import SAT
 from comgs_dr.lighting.light_regions import (BANDS_DEG, FEATURES, MAX_REGIONS, N_BASE_FEATURES,
                                              Region, _check, _unit, clipped_regions,
                                              region_features, ring_colour)
 from comgs_dr.lighting.sg import render_lobes, sg_integral, sg_sharpness
+from comgs_dr.lighting.torch_io import load_torch_file
 
 __all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_regions",
            "FEATURES", "N_BASE_FEATURES", "region_features", "ring_colour", "BANDS_DEG",
@@ -141,13 +141,7 @@ def load_head(path=DEFAULT_HEAD) -> LightHead | HeadEnsemble:
     path = DEFAULT_HEAD if str(path) == "default" else Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"light head weights not found: {path}")
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - any decoding failure means a bad file
-        raise ValueError(f"{path}: not a readable light-head file "
-                         f"({torch_load_error(exc)})") from exc
-    if not isinstance(ck, dict) or ck.get("format") != _FORMAT:
-        raise ValueError(f"{path}: not a light-head file (format {_FORMAT!r} expected)")
+    ck = load_torch_file(path, _FORMAT, "light-head file")
     feats = ck.get("features")
     if not isinstance(feats, list) or not feats or feats != list(FEATURES[:len(feats)]):
         raise ValueError(f"{path}: made for other features; retrain with comgs "
