@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
-from comgs_dr.train.loop import BestState, run_loop
+from comgs_dr.train.loop import BestState, LoopTrainer, TrainerBase, run_loop
 
 
 @dataclasses.dataclass
@@ -120,3 +120,49 @@ def test_best_state_survives_a_checkpoint(tmp_path):
     empty = BestState()
     empty.from_checkpoint(loaded, None)                   # a run that never evaluated
     assert empty.state is None
+
+
+def test_both_trainers_implement_the_loop_interface():
+    """Step 1's and step 2's trainers are concrete TrainerBase subclasses (so LoopTrainers);
+    a bare LoopTrainer without the optional hooks runs too."""
+    import inspect
+
+    from comgs_dr.stages.decompose import MaterialTrainer
+    from comgs_dr.stages.reconstruct import Trainer
+    for cls in (Trainer, MaterialTrainer):
+        assert issubclass(cls, TrainerBase) and not inspect.isabstract(cls), cls
+        assert isinstance(cls.checkpoint_path, property)
+    assert Trainer.snapshot is not TrainerBase.snapshot      # step 1 keeps its best state
+    assert Trainer.log_fields is not TrainerBase.log_fields
+    assert MaterialTrainer.log_fields is TrainerBase.log_fields
+
+    class _Minimal:                                       # only the protocol's members
+        def __init__(self):
+            self.iteration, self.elapsed, self.log = 0, 0.0, []
+
+        def step(self):
+            self.iteration += 1
+            return {"loss": 1.0, "psnr_train": 20.0}
+
+        def evaluate(self, max_views=None):
+            return {"psnr_test": 19.0}
+
+        def checkpoint(self):
+            pass
+
+    tr = _Minimal()
+    assert isinstance(tr, LoopTrainer) and not isinstance(tr, TrainerBase)
+    assert isinstance(_FakeTrainer({}), LoopTrainer)
+    assert run_loop(tr, _Cfg(), "test", progress=False) is False and tr.iteration == 12
+    assert set(tr.log[0]) == {"iteration", "time_s", "loss", "psnr_train"}
+
+    class _Hooked(_Minimal, TrainerBase):
+        def log_fields(self):
+            return {"surfels": 7}
+
+    tr = _Hooked()
+    assert tr.bar_fields() == {"surfels": 7} and tr.checkpoint_path is None
+    run_loop(tr, _Cfg(), "test", progress=False)
+    assert tr.log[0]["surfels"] == 7
+    with pytest.raises(NotImplementedError):
+        tr.snapshot()

@@ -21,7 +21,7 @@ from comgs_dr.stages.decompose import CKPT_FORMAT as MAT_FORMAT
 from comgs_dr.stages.reconstruct import CKPT_FORMAT as RECON_FORMAT
 from comgs_dr.train import checkpoint as ck
 from comgs_dr.train import interrupt
-from comgs_dr.train.loop import run_loop
+from comgs_dr.train.loop import TrainerBase, run_loop
 
 # ----------------------------------------------------------------------------- in-process
 
@@ -31,7 +31,7 @@ class _Cfg:
     checkpoint_every, checkpoint_every_s, time_limit_s = 1000, None, None
 
 
-class _Trainer:
+class _Trainer(TrainerBase):
     """Counts; sends itself ``signum`` at iteration ``at``."""
 
     def __init__(self, signum=None, at=None):
@@ -58,6 +58,7 @@ def test_signal_checkpoints_then_stops(signum, code):
     with pytest.raises(interrupt.TrainingInterrupted) as e:
         run_loop(tr, _Cfg(), "t", progress=False)
     assert tr.saved == [7] and e.value.iteration == 7 and e.value.exit_code == code
+    assert e.value.checkpoint == "ckpt"                       # TrainerBase.checkpoint_path
     assert isinstance(e.value, KeyboardInterrupt) and "resume" in str(e.value)
     assert signal.getsignal(signum) is before                 # handler restored
     tr2 = _Trainer()

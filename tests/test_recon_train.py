@@ -11,6 +11,7 @@ from comgs_dr import cli
 from comgs_dr.data.load import load_dataset
 from comgs_dr.stages.reconstruct import CKPT_FORMAT, RadianceConfig, Trainer, train_radiance
 from comgs_dr.train import checkpoint as ck
+from comgs_dr.train.loop import LoopTrainer
 
 trimesh = pytest.importorskip("trimesh")
 
@@ -32,6 +33,7 @@ def _cfg(**kw):
 def test_training_improves_psnr(tiny_dataset, tmp_path):
     data = load_dataset(tiny_dataset)
     tr = Trainer(data, tmp_path / "probe", _cfg(), progress=False)
+    assert isinstance(tr, LoopTrainer)            # what run_loop needs, on a real instance
     psnr0 = tr.evaluate()["psnr_test"]
     s = train_radiance(data, tmp_path / "run", _cfg(), progress=False)
     assert s["iterations"] == 150 and np.isfinite(s["psnr_test"])

@@ -25,9 +25,12 @@ def _cfg(**kw):
 
 def test_decompose_with_sops_improves_fit_and_writes_outputs(tiny_run):
     from comgs_dr.stages.decompose import MaterialTrainer, train_material
+    from comgs_dr.train.loop import LoopTrainer
     run, _ = tiny_run
     out = run / "mat_sops"
-    before = MaterialTrainer(run, out, _cfg(), progress=False).evaluate()["psnr_test"]
+    probe = MaterialTrainer(run, out, _cfg(), progress=False)
+    assert isinstance(probe, LoopTrainer)         # what run_loop needs, on a real instance
+    before = probe.evaluate()["psnr_test"]
     s = train_material(run, out, _cfg(), progress=False)
     assert s["iterations"] == 40 and np.isfinite(s["psnr_test"])
     # measured: ~+4-6 dB from the grey initial state within 40 iterations

@@ -46,7 +46,7 @@ from comgs_dr.surfels.scene import gbuffer_scene
 from comgs_dr.surfels.shape import SurfelShapeBase
 from comgs_dr.train import checkpoint as ck
 from comgs_dr.train import losses as L
-from comgs_dr.train.loop import finish, run_loop, zero_nonfinite_grads
+from comgs_dr.train.loop import TrainerBase, finish, run_loop, zero_nonfinite_grads
 from comgs_dr.train.material_smoothness import material_smoothness, pairs_from_params
 from comgs_dr.train.run import load_run_dataset, read_run_info
 
@@ -122,8 +122,8 @@ MAT_KEYS = ("surfels.albedo", "surfels.roughness", "surfels.metallic")
 ENV_KEY, SOPS_KEY = "env.theta", "integrator.probe_data"
 
 
-class MaterialTrainer:
-    """Step 2 as a Mitsuba optimisation: ``mi.render`` of the ``sop_pbr`` integrator
+class MaterialTrainer(TrainerBase):
+    """Step 2's :class:`~comgs_dr.train.loop.TrainerBase`, a Mitsuba optimisation: ``mi.render`` of the ``sop_pbr`` integrator
     (lit by an ``octenvmap`` emitter) + ``dr.backward``, with Adam on
     ``mi.traverse(scene)`` keys: the surfels' materials, the probe textures
     (``integrator.probe_data``) and the map's log radiance θ (``env.data = exp θ``, a
@@ -162,12 +162,13 @@ class MaterialTrainer:
         sensors = [v.camera.sensor_dict(**clip) for v in self.views + self.test]
         self.object_size = object_size(params)
         # a known (fixed) map is importance-sampled: its table is built once, and uniform
-        # directions miss a studio's small softboxes (the fit fell to 15 dB on two objects)
+        # directions rarely hit a studio's small softboxes, whose light then goes missing
         self.sampling = (("mis" if cfg.env_file is not None else "uniform")
                          if cfg.sampling == "auto" else cfg.sampling)
         self._pairs = None
-        # measured (README, step 2): under a learnt light the prior moves the albedo's error
-        # around; under a known one it gives the object its colour (composites +0.7-1.1 dB)
+        # the smoothness prior by default only under a known light: there the light is
+        # fixed, so neighbours that looked alike in step 1 share their albedo; under a
+        # learnt light the albedo/light split is ambiguous and the prior cannot resolve it
         self.lambda_smooth = (SMOOTH_KNOWN_LIGHT if cfg.env_file is not None else 0.0) \
             if cfg.lambda_smooth is None else cfg.lambda_smooth
         if self.lambda_smooth > 0:
@@ -225,7 +226,7 @@ class MaterialTrainer:
         """[R, R, 3] octahedral radiance to start from: ``env_init`` everywhere, or the
         known capture light ``env_file`` (equirect in the package's Z-up convention, as
         ``relight`` reads it, or our octahedral EXR) × ``env_scale``, resampled to ``env_res``.
-        Under an unknown light the albedo/light colour split is ambiguous (README, step 2);
+        Under an unknown light a diffuse colour fits as albedo × light colour for any split;
         a known light removes the ambiguity, and it stays fixed."""
         c = self.cfg
         r = c.env_res
@@ -327,11 +328,10 @@ class MaterialTrainer:
         """Σ_t w_t Σ_c (log e_tc − mean_c log e_t)²: the log-chroma (saturation) of every
         texel t of the map, weighted by its share of the power w_t (detached), so that the
         lights count most. Under distant light a diffuse colour fits as albedo × light
-        colour for any split. Without a prior, the object captured under a blue-grey studio
-        put its orange into the light and the relit object came out grey (albedo 0.44, 0.34,
-        0.24 for a true 0.8, 0.35, 0.1); a prior on the map's mean colour alone only moved
-        the orange into the key light and the blue elsewhere (0.46, 0.33, 0.23). Lights are
-        rarely saturated: the prior prefers grey ones (a white-light prior, not in the paper)."""
+        colour for any split, so without a prior an object's colour can move into the light
+        (and relit, the object loses it); a prior on the map's mean colour alone lets one
+        light take the colour and another its complement. Lights are rarely saturated: the
+        prior prefers grey ones (a white-light prior, not in the paper)."""
         e = dr.exp(self.opt[ENV_KEY])                                           # [R·R·3]
         n = dr.width(e) // 3
         idx = dr.arange(mi.UInt32, n) * 3

@@ -39,7 +39,7 @@ from comgs_dr.train.init import initial_surfels  # noqa: F401 (part of this stag
 from comgs_dr.train import losses as L
 from comgs_dr.train.density import DensityConfig
 from comgs_dr.train.strategy import DefaultStrategy, StepInfo, tan_half
-from comgs_dr.train.loop import BestState, finish, run_loop, zero_nonfinite_grads
+from comgs_dr.train.loop import BestState, TrainerBase, finish, run_loop, zero_nonfinite_grads
 from comgs_dr.train.schedule import log_lerp
 
 log = logging.getLogger(__name__)
@@ -194,8 +194,9 @@ def _with_sh_degree(p: SurfelParams, degree: int) -> SurfelParams:
     return SurfelParams.from_numpy(**d)
 
 
-class Trainer:
-    """Owns the scene, the optimiser and the density controller of one run."""
+class Trainer(TrainerBase):
+    """Step 1's :class:`~comgs_dr.train.loop.TrainerBase`: owns the scene, the optimiser and
+    the density controller of one run."""
 
     def __init__(self, data, run_dir, cfg: RadianceConfig, progress: bool = True):
         cfg, self.background_reason = resolve_background(cfg, data)

@@ -1,27 +1,28 @@
 """The one training loop of step 1 and step 2: progress, evaluation schedule, the
 (wall time, metric) log, checkpoints, time limit and resume.
 
-A trainer provides ``iteration``, ``elapsed`` (training seconds so far, restored on resume),
-``log`` (list of records), ``step() -> stats`` (with ``loss`` and ``psnr_train``),
-``evaluate(max_views) -> {'psnr_test', ...}``, ``checkpoint()`` and optionally
-``log_fields() -> dict`` (extra per-record values, e.g. the surfel count; ``bar_fields()``
-the part of them the progress bar shows, default all) and, to keep the
-best state, ``snapshot() -> state`` / ``restore(state)``: then every evaluation that returns
-``psnr_select`` (a PSNR on *training* views, so the test views never choose the state) and
-beats the best so far is snapshotted (:class:`BestState`). The config gives
-``iterations``, ``log_every``, ``eval_every``, ``eval_views``, ``checkpoint_every``,
-``checkpoint_every_s`` (wall time) and ``time_limit_s``. SIGINT/SIGTERM during the loop write a
-checkpoint and raise ``interrupt.TrainingInterrupted`` (``train.interrupt``). Every record is ``{"iteration", "time_s", **stats[, psnr_test]}``; evaluation
-time does not count as training time. With a ``jsonl_dir`` each record is also appended to
-``metrics.jsonl`` as it is taken (``core.runlog``; rewritten from the restored log on resume
-and at the end), so ``comgs report`` can plot a run that is still going.
+A trainer is a :class:`TrainerBase` (the :class:`LoopTrainer` protocol plus the optional
+hooks with their defaults). The loop calls ``step()`` until ``iteration`` reaches
+``cfg.iterations``; every ``log_every`` iterations it appends a record
+``{"iteration", "time_s", **log_fields(), **stats}`` to ``log``, and every ``eval_every`` adds
+``evaluate(eval_views)`` to it (evaluation time does not count as training time). Given a
+:class:`BestState`, every evaluation that returns ``psnr_select`` (a PSNR on *training* views,
+so the test views never choose the state) and beats the best so far is ``snapshot()``-ed.
+The config gives ``iterations``, ``log_every``, ``eval_every``, ``eval_views``,
+``checkpoint_every``, ``checkpoint_every_s`` (wall time) and ``time_limit_s``. SIGINT/SIGTERM
+during the loop write a checkpoint and raise ``interrupt.TrainingInterrupted``
+(``train.interrupt``). With a ``jsonl_dir`` each record is also appended to ``metrics.jsonl``
+as it is taken (``core.runlog``; rewritten from the restored log on resume and at the end),
+so ``comgs report`` can plot a run that is still going.
 """
 from __future__ import annotations
 
+import abc
 import json
 import time
 import warnings
 from pathlib import Path
+from typing import Protocol, runtime_checkable
 
 import drjit as dr
 from tqdm.auto import tqdm
@@ -31,6 +32,62 @@ from comgs_dr.train.checkpoint import atomic_write_text
 from comgs_dr.train.interrupt import CheckpointClock, stop_signals
 
 LOG_NAME = "train_log.json"
+
+
+@runtime_checkable
+class LoopTrainer(Protocol):
+    """What :func:`run_loop` needs of a trainer."""
+
+    iteration: int          # steps taken (restored on resume)
+    elapsed: float          # training seconds so far (restored on resume)
+    log: list               # the records so far
+
+    def step(self) -> dict:
+        """One optimisation step; the stats include ``loss`` and ``psnr_train``."""
+
+    def evaluate(self, max_views: int | None = None) -> dict:
+        """Scores on at most ``max_views`` views: ``psnr_test``, optionally ``psnr_select``."""
+
+    def checkpoint(self) -> None:
+        """Write the state to resume from."""
+
+
+class TrainerBase(abc.ABC):
+    """A :class:`LoopTrainer` with the loop's optional hooks and their defaults."""
+
+    iteration: int
+    elapsed: float
+    log: list
+    #: where :meth:`checkpoint` writes (named when a signal stops the run); None: unnamed
+    checkpoint_path: Path | None = None
+
+    @abc.abstractmethod
+    def step(self) -> dict:
+        """One optimisation step; the stats include ``loss`` and ``psnr_train``."""
+
+    @abc.abstractmethod
+    def evaluate(self, max_views: int | None = None) -> dict:
+        """Scores on at most ``max_views`` views: ``psnr_test``, optionally ``psnr_select``."""
+
+    @abc.abstractmethod
+    def checkpoint(self) -> None:
+        """Write the state to resume from."""
+
+    def log_fields(self) -> dict:
+        """Extra values of every record (e.g. the surfel count)."""
+        return {}
+
+    def bar_fields(self) -> dict:
+        """The part of :meth:`log_fields` the progress bar shows."""
+        return self.log_fields()
+
+    def snapshot(self) -> dict:
+        """A host copy of the state, for :class:`BestState`."""
+        raise NotImplementedError(f"{type(self).__name__} keeps no best state")
+
+    def restore(self, state: dict) -> None:
+        """Install a :meth:`snapshot`."""
+        raise NotImplementedError(f"{type(self).__name__} keeps no best state")
 
 
 def zero_nonfinite_grads(opt, keys) -> int:
@@ -106,7 +163,7 @@ class BestState:
                                                      int(record["iteration"]), state)
 
 
-def run_loop(trainer, cfg, desc: str, progress: bool = True, log_dir: Path | None = None,
+def run_loop(trainer: LoopTrainer, cfg, desc: str, progress: bool = True, log_dir: Path | None = None,
              best: BestState | None = None, jsonl_dir: Path | None = None,
              stage: str | None = None) -> bool:
     """Run ``trainer`` up to ``cfg.iterations`` (from wherever it resumed). With ``log_dir``
@@ -131,8 +188,9 @@ def _loop(trainer, cfg, desc, progress, log_dir, best, jsonl_dir, stage, guard) 
                dynamic_ncols=True, disable=not progress)
     t0 = time.perf_counter() - trainer.elapsed
     stopped_early = False
-    extra = getattr(trainer, "log_fields", dict)
-    bar_extra = getattr(trainer, "bar_fields", extra)     # what the progress bar shows
+    hooks = trainer if isinstance(trainer, TrainerBase) else None   # a bare LoopTrainer: none
+    extra = hooks.log_fields if hooks else dict
+    bar_extra = hooks.bar_fields if hooks else dict     # what the progress bar shows
     clock = CheckpointClock(cfg.checkpoint_every, getattr(cfg, "checkpoint_every_s", None))
     shown = {}                         # the bar names each PSNR and keeps the last test one
     while trainer.iteration < cfg.iterations:
@@ -159,7 +217,7 @@ def _loop(trainer, cfg, desc, progress, log_dir, best, jsonl_dir, stage, guard) 
         if guard.signum is not None:
             bar.close()
             _save(trainer, log_dir)
-            guard.raise_if_stopped(it, getattr(trainer, "checkpoint_path", None))
+            guard.raise_if_stopped(it, hooks.checkpoint_path if hooks else None)
         if clock.due(it):
             _save(trainer, log_dir)
             clock.mark()
