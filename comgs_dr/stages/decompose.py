@@ -123,8 +123,9 @@ ENV_KEY, SOPS_KEY = "env.theta", "integrator.probe_data"
 
 
 class MaterialTrainer(TrainerBase):
-    """Step 2's :class:`~comgs_dr.train.loop.TrainerBase`, a Mitsuba optimisation: ``mi.render`` of the ``sop_pbr`` integrator
-    (lit by an ``octenvmap`` emitter) + ``dr.backward``, with Adam on
+    """Step 2's :class:`~comgs_dr.train.loop.TrainerBase`, a Mitsuba optimisation:
+    ``mi.render`` of the ``sop_pbr`` integrator (lit by an ``octenvmap`` emitter) +
+    ``dr.backward``, with Adam on
     ``mi.traverse(scene)`` keys: the surfels' materials, the probe textures
     (``integrator.probe_data``) and the map's log radiance θ (``env.data = exp θ``, a
     latent variable: scale-free steps, HDR without overflow).
