@@ -54,7 +54,7 @@ def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print,
     """[{map, regions: [{true, seen, head, net}]}] for panoramas (``res`` × 2·``res``) with
     ≥ 2 clipped regions (luminance powers, EV-0 radiance units); ``head_path``: light-head
     weights (None: the shipped head, or for a held-out map its fold without that map,
-    ``lights.held_out_head``); ``cv_heads``: {map stem: weights} used first."""
+    ``cv_heads.held_out_head``); ``cv_heads``: {map stem: weights} used first."""
     import torch
 
     from comgs_dr.core.colorspace import LUMA
@@ -65,6 +65,7 @@ def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print,
     from comgs_dr.lighting import hdr
     from comgs_dr.lighting import lights as L
     from comgs_dr.lighting import pano_data as P
+    from cv_heads import held_out_head
     from lighting_eval import load_eval_map
     torch.set_num_threads(1)
     net = B.load_network_backend()
@@ -78,7 +79,7 @@ def region_powers(maps, masks: int, seed: int, res: int = 128, progress=print,
         gm, lab = load_eval_map(path, h), C.LABELS[P.label_of(path.stem)]
         # the shipped head saw every shared map: a held-out map gets its fold without it
         head = fixed if fixed is not None else L.load_head(
-            (cv_heads or {}).get(path.stem) or L.held_out_head(path.stem))
+            (cv_heads or {}).get(path.stem) or held_out_head(path.stem))
         for j in range(masks):
             mk, shift = bank[i * masks + j], int(rng.integers(w))
             if mk["coverage"] < 0.4:

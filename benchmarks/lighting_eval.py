@@ -25,9 +25,9 @@ traced from procedural surfel scenes), with a random rotation about Z:
 ``--cv-heads CV`` (``train-light-head --cv-out CV``): every map is scored with ``CV/<stem>.pt``,
 the light head of the cross-validation fold that left that map out, so a head fitted on
 every real map can still be scored on maps its own fold never saw. The shipped head is
-fitted on every shared map, and its folds for the ``pano_data.HELD_OUT`` maps are shipped
-(``lights.CV_HEADS``): without ``--light-head`` / ``--cv-heads`` those maps are scored with
-their fold, the others with the shipped head.
+fitted on every shared map, and its folds for the ``pano_data.HELD_OUT`` maps are kept in
+``benchmarks/data/light_head_cv`` (``cv_heads.CV_HEADS``): without ``--light-head`` /
+``--cv-heads`` those maps are scored with their fold, the others with the shipped head.
 
 Before the run and again at its end, a map that one of the learned models used was fitted
 on (its model card's list of maps, ``pano_data.trained_maps``, matched by file stem) is named
@@ -83,6 +83,7 @@ import numpy as np
 from comgs_dr.data import pano_masks
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))      # its sibling, when loaded by path
+from cv_heads import held_out_head  # noqa: E402
 from lighting_eval_report import (BASELINES, CLEAR_MARGIN, CLEAR_SAME_DEG, CLEAR_SEEDS,  # noqa: E402
                                   GROUPS, METRICS, _jsonable, print_dominance_table,
                                   print_label_table, print_tables, save_figure,
@@ -138,14 +139,12 @@ def parse_args(argv=None):
 def cv_head_paths(args, maps) -> dict:
     """{map stem: its cross-validation head} from ``--cv-heads``; FileNotFoundError naming
     every map without one, before any work. Without ``--cv-heads`` and ``--light-head``, the
-    maps whose fold of the shipped head is shipped (``lights.held_out_head``: the held-out
+    maps whose fold of the shipped head is kept (``cv_heads.held_out_head``: the held-out
     maps) get that fold, the others the shipped head."""
     if args.cv_heads is None:
         if args.light_head is not None:
             return {}
-        lights = importlib.import_module("comgs_dr.lighting.lights")
-        return {p.stem: Path(h) for p in maps
-                if str(h := lights.held_out_head(p.stem)) != "default"}
+        return {p.stem: Path(h) for p in maps if str(h := held_out_head(p.stem)) != "default"}
     d = Path(args.cv_heads)
     if not d.is_dir():
         raise FileNotFoundError(f"--cv-heads: no such folder {d}")

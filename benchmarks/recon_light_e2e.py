@@ -27,7 +27,7 @@ the sun goes through LDR captures and step 1's optimisation (blur, a learnt back
     python benchmarks/recon_light_e2e.py [--maps a.exr ...] [--iterations 800] [--out DIR]
 
 The shipped light head was fitted on every shared map; with ``--light-head default`` a map
-whose fold of it is shipped (the held-out maps, ``lights.held_out_head``) is estimated with
+whose fold of it is kept (the held-out maps, ``cv_heads.held_out_head``) is estimated with
 that fold, the head fitted the same way without the map (a comment line says so).
 """
 from __future__ import annotations

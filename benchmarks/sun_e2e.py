@@ -19,7 +19,7 @@ angular error and the total power ratio.
     python benchmarks/sun_e2e.py [--maps a.exr b.hdr] [--res 128] [--dome-res 128]
 
 The shipped light head was fitted on every shared map; with ``--light-head default`` a map
-whose fold of it is shipped (the held-out maps, ``lights.held_out_head``) is estimated with
+whose fold of it is kept (the held-out maps, ``cv_heads.held_out_head``) is estimated with
 that fold, the head fitted the same way without the map (a comment line says so).
 """
 from __future__ import annotations
@@ -125,9 +125,9 @@ def e2e_methods(head: str = "default", weights=None) -> tuple[dict, dict]:
 
 def map_head(stem: str, head) -> str:
     """``head`` for map ``stem``, but the shipped head's cross-validation fold for a map it
-    was fitted on and whose fold is shipped (``lights.held_out_head``), said in a comment
+    was fitted on and whose fold is kept (``cv_heads.held_out_head``), said in a comment
     line: the score stays a held-out one."""
-    from comgs_dr.lighting.lights import held_out_head
+    from cv_heads import held_out_head
     h = held_out_head(stem, head)
     if str(h) != str(head):
         print(f"<!-- {stem}: light head {Path(h).relative_to(Path(h).parents[2])} "

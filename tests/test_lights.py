@@ -555,20 +555,24 @@ def test_downsample_clipped_keeps_lights_that_fill_their_block():
 
 
 def test_held_out_maps_get_the_shipped_heads_fold_without_them():
-    """The shipped head saw every shared map; a held-out map is scored with its shipped
-    cross-validation fold, whose card lacks that map, and which predicts finite gains."""
+    """The shipped head saw every shared map; the benchmarks score a held-out map with its
+    cross-validation fold (``benchmarks/cv_heads.py``), whose card lacks that map, and which
+    predicts finite gains."""
+    from bench_module import load_benchmark
+
     from comgs_dr.lighting.pano_data import HELD_OUT, trained_maps
+    cv = load_benchmark("cv_heads")
     card = trained_maps(L.DEFAULT_HEAD)
     for stem in HELD_OUT:
-        path = L.held_out_head(stem)
-        assert path == L.CV_HEADS / f"{stem}.pt" and stem not in trained_maps(path)
+        path = cv.held_out_head(stem)
+        assert path == cv.CV_HEADS / f"{stem}.pt" and stem not in trained_maps(path)
         assert trained_maps(path) == card - {stem}
-        assert L.held_out_head(stem, "mine.pt") == "mine.pt"     # a given head is kept
-    assert L.held_out_head("blender_city") == "default"          # no fold shipped for it
+        assert cv.held_out_head(stem, "mine.pt") == "mine.pt"    # a given head is kept
+    assert cv.held_out_head("blender_city") == "default"         # no fold kept for it
     x = torch.zeros(1, len(L.FEATURES))                           # "default" loads the shipped
     torch.testing.assert_close(L.load_head("default")(x), L.load_head(L.DEFAULT_HEAD)(x))
-    assert L.held_out_head("blender_city", None) is None
+    assert cv.held_out_head("blender_city", None) is None
     img, _ = _sun_map()
     ldr = expose(img * 0.05, 0.0)
-    lobes = L.predict_lobes(ldr, np.ones((64, 128)), L.load_head(L.held_out_head(HELD_OUT[0])), 0)
+    lobes = L.predict_lobes(ldr, np.ones((64, 128)), L.load_head(cv.held_out_head(HELD_OUT[0])), 0)
     assert lobes and all(np.isfinite(lb["gain"]) and lb["gain"] >= 1 for lb in lobes)

@@ -70,3 +70,15 @@ def test_net_beats_mean_fill_on_unseen_panoramas(backend, samples):
         e_net.append(np.abs(backend.complete(ldr, nrm, a, evs=(0.0,))[0.0] - tgt)[hole].mean())
         e_mean.append(np.abs(fill.complete(ldr, nrm, a, evs=(0.0,))[0.0] - tgt)[hole].mean())
     assert np.mean(e_net) < 0.9 * np.mean(e_mean), (e_net, e_mean)
+
+
+def test_the_package_ships_only_the_weights_it_loads_at_run_time():
+    """comgs_dr/lighting/weights holds the completion net, the light head and the scene-label
+    model with their cards; the light head's cross-validation folds, which only benchmarks
+    read, live in benchmarks/data/light_head_cv."""
+    from pathlib import Path
+
+    weights = Path(C.__file__).parent / "weights"
+    assert sorted(p.name for p in weights.iterdir() if not p.name.startswith(".")) == [
+        "completion.json", "completion.pt", "light_head.json", "light_head.pt",
+        "scene_label.json"]

@@ -67,7 +67,7 @@ from comgs_dr.lighting.torch_io import load_torch_file
 __all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_regions",
            "FEATURES", "N_BASE_FEATURES", "region_features", "ring_colour", "BANDS_DEG",
            "MAX_REGIONS", "LightHead", "HeadEnsemble", "save_head", "load_head",
-           "DEFAULT_HEAD", "CV_HEADS", "held_out_head", "predict_lobes", "downsample_clipped",
+           "DEFAULT_HEAD", "predict_lobes", "downsample_clipped",
            "shared_power", "vote_shares", "add_lights", "describe_regions", "regions_overlay",
            "SAT", "TRUST_BRACKETS"]
 
@@ -75,10 +75,6 @@ MAX_LOG_GAIN = 25.0       # P_true / P_seen ≤ e^25 ≈ 7e10 (a real sun at EV 
 TRUST_BRACKETS = 0.25      # add_lights: the brackets' vote on which region holds the power
                            # (benchmarks/light_ranking.py; docs/lighting.md "The brackets' vote")
 DEFAULT_HEAD = Path(__file__).parent / "weights" / "light_head.pt"
-# The shipped head is fitted on every shared real map; for the maps the benchmarks score as
-# held out (``pano_data.HELD_OUT``) its cross-validation folds are shipped here: <stem>.pt,
-# the head fitted the same way without that map (``train-light-head --cv-out``).
-CV_HEADS = DEFAULT_HEAD.parent / "light_head_cv"
 _FORMAT = "comgs_dr.lighting.light_head/1"
 
 
@@ -136,7 +132,7 @@ def save_head(head: LightHead | HeadEnsemble, path, info: dict | None = None) ->
 
 def load_head(path=DEFAULT_HEAD) -> LightHead | HeadEnsemble:
     """LightHead, or HeadEnsemble when the file holds several, (eval mode) from ``save_head``
-    ("default": ``DEFAULT_HEAD``, as ``held_out_head`` may answer); FileNotFoundError if
+    ("default": ``DEFAULT_HEAD``); FileNotFoundError if
     missing, ValueError for another format or another feature list."""
     path = DEFAULT_HEAD if str(path) == "default" else Path(path)
     if not path.is_file():
@@ -151,16 +147,6 @@ def load_head(path=DEFAULT_HEAD) -> LightHead | HeadEnsemble:
         heads.append(LightHead(len(feats), int(ck["hidden"])))
         heads[-1].load_state_dict(sd)
     return (heads[0] if len(heads) == 1 else HeadEnsemble(heads)).eval()
-
-
-def held_out_head(stem: str, head="default"):
-    """The light head to score map ``stem`` with, so that the score is a held-out one:
-    ``head`` itself unless it is "default" (or None) and ``CV_HEADS/<stem>.pt`` exists, the
-    shipped head's cross-validation fold that never saw that map; then that path."""
-    if head not in (None, "default"):
-        return head
-    cv = CV_HEADS / f"{stem}.pt"
-    return cv if cv.is_file() else head
 
 
 @torch.no_grad()
