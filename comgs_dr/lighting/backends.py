@@ -129,11 +129,7 @@ class BlendBackend(CompletionBackend):
 
     Model averaging: the net's hole is detailed but its colour wanders, the SH fill is smooth
     and right on average, and cannot hold a light (it stays below the EV-0 white), so
-    averaging would only halve the net's lights. Measured (``lighting_eval --held-out
-    --masks 8 --draws 3``, 96 samples, weights ½ net ½ SH fixed beforehand, not tuned):
-    group × metric wins over the fills 15 of 18 per draw against 12 of 18 for the net alone;
-    pooled, dominant-light angle with the light visible 18.2° with ``keep_lights``, 22.5°
-    without, 18.1° for the net alone (best fill 43.7°).
+    averaging would only halve the net's lights: ``keep_lights`` keeps them.
 
     ``label_weights`` {label: weights} overrides ``weights`` for a completion label
     ("indoor", "outdoor", "unknown" or its index); members with weight 0 are not run.
@@ -220,31 +216,14 @@ def _backend_label(b) -> str:
 
 
 #: ``default_backend``'s luminance weights per label: outdoors the net's hole alone (its
-#: colour: ``LABEL_COLOUR_WEIGHTS``). Measured with
-#: ``lighting_eval --held-out --masks 8 --draws 3`` (96 samples; outdoor maps forest_slope,
-#: blender_sunrise, blender_courtyard) net+lights against the ½/½ blend, outdoors: si-RMSE
-#: 1.405 vs 1.419, |log E(sun)/E(up) error| 0.406 vs 0.519, relighting 16.23 vs 15.75 dB,
-#: angular 7.90° vs 7.34°: the SH fill's smooth guess brightens the zenith that an outdoor
-#: capture leaves in the hole. Indoors the blend stays (relighting 20.90 vs 20.29 dB).
-#: Chosen on those held-out maps and on ``recon_light_e2e`` (7 maps: mean |E ratio error|
-#: 21 % vs 24 %).
+#: colour: ``LABEL_COLOUR_WEIGHTS``), since the SH fill's smooth guess brightens the zenith
+#: that an outdoor capture leaves in the hole; indoors the ½/½ blend.
 LABEL_WEIGHTS = {"outdoor": (1.0, 0.0)}
 
 
 #: ``net_sh_blend``'s colour in the hole per label, apart from its luminance: outdoors the
 #: net's luminance (``LABEL_WEIGHTS``) in the colour of the ½ net + ½ SH mean, the colour
-#: averaging the blend does indoors. Measured with ``lighting_eval --held-out --masks 16
-#: --draws 3`` (211 samples; 125 outdoor) against the net's own colour outdoors: colour
-#: angular error 5.71° vs 5.97° (outdoor 6.69° vs 7.13°; lower in 8 of the 9 outdoor map ×
-#: coverage cells, forest_slope 40–60 % 7.74° vs 7.69°), si-RMSE 1.0956 vs 1.0949,
-#: relighting 19.21 vs 19.22 dB; per draw ours now beats every fill on all 9 angular
-#: comparisons (draw 1, 40–60 %: 5.78° vs 6.66° for SH; before, 6.72°). On the 8 training
-#: maps, where the net has learnt the maps' colours (119 samples, 1 draw): 3.332° vs 3.221°,
-#: relighting 21.58 vs 21.82 dB (venice_sunset 40–60 % 5.84° vs 3.30°). Tried and not taken:
-#: the net's colour everywhere (``colour="first"``): held out 5.79° vs 5.97°, all of it one
-#: map's 40–60 % (blender_interior), training maps 3.250° vs 3.221°, all labels "unknown"
-#: 5.86° vs 5.62°. Both were tried, and the outdoor mix chosen, on the held-out maps (after
-#: draw 1's lost comparison), so those are no longer a clean test of it.
+#: averaging the blend does indoors (the net's own colour wanders on maps it has not seen).
 LABEL_COLOUR_WEIGHTS = {"outdoor": (0.5, 0.5)}
 COLOUR_CHOICES = ("default", "mean", "first")
 

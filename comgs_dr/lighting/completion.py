@@ -225,8 +225,8 @@ def blend_observed(rgb, mask, pred, ev, saturation: float = SATURATION):
     prediction, made consistent with the observation; unsaturated channels stay exact).
 
     A hard threshold, not an alpha blend: the traced colour of a partly covered pixel is the
-    radiance seen there, and blending the prediction into the ~40 % of partly covered pixels
-    of a surfel trace was measured to add colour error (mirror-sphere angular error)."""
+    radiance seen there, and blending the prediction into the many (~40 %) partly covered
+    pixels of a surfel trace adds colour error."""
     e = ev.to(rgb.dtype).reshape(-1, 1, 1, 1)
     seen = expose_ldr(rgb, ev)
     clipped = (e < 0) & (rgb >= saturation)                              # [B, 3, H, W]

@@ -59,8 +59,8 @@ SAT = 0.98                 # EV-0 max channel at/above which a pixel counts as c
 CLIPPED_SKY_WARN = 0.3     # clipped_sky_fraction above it: the light inside is not readable
 SEEN_SKY_WARN = 0.25       # seen_sky_fraction below it: the lights above are the completion's guess
 OPEN_SKY_WARN = 0.1        # open sky (a learned background) below it, the upper hemisphere seen:
-                           # it is surfels (forward-facing captures 0.018-0.031, views that look
-                           # around 0.65-0.67 of it; docs/lighting.md "A forward-facing capture")
+                           # it is surfels (a forward-facing capture; views that look around
+                           # leave well over half of it open)
 
 
 # ---------------------------------------------------------------------------------------
@@ -272,11 +272,8 @@ def clipped_sky_fraction(ldr, mask, sat: float = SAT) -> float:
 
     Above ``CLIPPED_SKY_WARN`` one exposure no longer says where the light is nor how strong:
     a sky blown out around the sun is one clipped region whose centroid is the sky's, and the
-    brackets and the head only see its rim. Through step 1 (``recon_light_e2e``, 64-px
-    captures) the captures that passed had at most 0.20 (courtyard 0.20, forest 0.17–0.19);
-    the two outdoor failures had 0.37 (``kiara_1_dawn``, a dawn glow, E ratio −31 %) and 0.71
-    (``venice_sunset`` exposed 4× brighter: −35 %, light 47° off; −6 % and +2 % at 0.25× and
-    1×). The threshold was set on those runs."""
+    brackets and the head only see its rim. Good captures of a clear sky stay well below the
+    threshold; a broad dawn glow or an over-exposed sunset exceeds it."""
     ldr, seen = check_ldr_mask(ldr, mask, "clipped_sky_fraction")
     h, w = seen.shape
     up = np.broadcast_to(equirect_directions(h, w)[..., 2] > 0, (h, w))
@@ -293,10 +290,8 @@ def seen_sky_fraction(mask) -> float:
     lights usually are) that is observed (mask > ½) in an equirect mask [H, W].
 
     Below ``SEEN_SKY_WARN`` no light above the placement was seen, so the head has nothing to
-    restore and the sun's direction and power are the completion's guess. Through step 1
-    (``recon_light_e2e --sky-views 0``: only the 40 views looking down at the ground) it was
-    0.03 and E(sun)/E(up) came out −81 % (`blender_sunrise`), −57 % (`venice_sunset`) and
-    −23 % (`blender_city`), the light 40–46° off; with the 12 sky views it was 0.70–0.73."""
+    restore and the sun's direction and power are the completion's guess (as for a capture
+    whose views all look down at the ground)."""
     m = np.asarray(mask, np.float64)
     m = m[..., 0] if m.ndim == 3 and m.shape[-1] == 1 else m
     if m.ndim != 2 or not np.isfinite(m).all():

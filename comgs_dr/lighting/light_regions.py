@@ -3,7 +3,7 @@
 Split from ``lighting.lights`` (which re-exports every name here): a region is a connected
 set of observed pixels clipped at EV 0 (``clipped_regions``), described by ``FEATURES``
 (``region_features``: 27 scale-free descriptors of the region and its surroundings, then 3
-of context against the panorama's other regions, ``_context``; docs/lighting.md "Stop 42").
+of context against the panorama's other regions, ``_context``).
 """
 from __future__ import annotations
 
@@ -46,9 +46,9 @@ def clipped_regions(ldr, mask, sat: float = SAT, max_regions: int = MAX_REGIONS,
 
     ``white_core``: keep only regions with at least one pixel clipped in every channel. A
     light's core saturates white; a region clipped in one channel only is a saturated
-    colour (a deep sky), or, in a reconstructed scene, a single sky texel at blue = 1. In the
-    demo's reconstruction six such specks beside the sun made the head read the scene as
-    many-lights and predict a sun gain of 4.8 instead of 57 (true ≈ 70)."""
+    colour (a deep sky), or, in a reconstructed scene, a single sky texel at blue = 1; such
+    specks beside the sun make the head read the scene as many lights and give the sun far
+    too little power."""
     ldr, seen = _check(ldr, mask)
     h, w = seen.shape
     clipped = seen & (ldr.max(-1) >= sat)
@@ -98,12 +98,8 @@ def region_features(ldr, mask, regions, label: int = 2, sat: float = SAT) -> np.
     floored at 1e-3°) is resolution-dependent and huge for a region of one to three pixels,
     whose centres barely leave the centroid: up to 2.5e6 (8 % of the training regions above
     100; the head standardises it by a std of 4.3e5, so it is near constant for the rest).
-    It stays because the shipped head was fitted with it. Measured on one training set
-    (leave-one-real-map-out MAE of the log gain, fitting seeds 0 / 1): with it 0.741 / 0.793,
-    zeroed 0.745 / 0.796, log-clipped to [1e-3, 1e3] 0.734 / –: below the seeds' spread. A head refitted on fresh data with a bounded version (each
-    pixel's equal-area radius added to the cap; CV 0.766 / 0.795, zeroed 0.759 / 0.806) had
-    held-out log power error 0.79 against the shipped head's 0.69 and top-1 0.660 against
-    0.642 (``light_ranking``): not shipped."""
+    It stays because the shipped head was fitted with it; what it contributes is below the
+    spread between fitting seeds."""
     ldr, seen = _check(ldr, mask)
     h, w = seen.shape
     dw = np.broadcast_to(pixel_solid_angles(h, w), (h, w))

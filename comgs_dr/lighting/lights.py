@@ -16,8 +16,8 @@ cannot:
   observed power first.
 * **Features** (``region_features``, ``FEATURES``): scale-free descriptors of a region and of
   the observed panorama around it (its solid angle, elevation, how fully it is clipped, the
-  brightness, colour and clipping of rings around it, the label, the image resolution),
-  and since stop 42 its EV-0 power against the panorama's other regions (``light_regions``).
+  brightness, colour and clipping of rings around it, the label, the image resolution)
+  and its EV-0 power against the panorama's other regions (``light_regions``).
 * **The head** (``LightHead``): a small MLP from the features to log(P_true / P_seen), the
   ratio of the region's true luminance power to what the EV-0 pixels hold, ≥ 0 (softplus:
   clipping only removes light). Trained by ``comgs train-light-head`` on the training maps'
@@ -26,26 +26,18 @@ cannot:
   generalise from 8 real maps plus procedural skies.
 * ``add_lights``: the fused HDR map with, per clipped region, the predicted power: where the
   completion's EV < 0 brackets already put more there, their excess over the EV-0 white
-  level is scaled down to it (``excess="match"``: on the held-out maps the net had made a
-  clipped window 2.3× brighter than the head's prediction and outshone the ceiling lamps;
-  dominant-light angle with the light visible 41.3° → 18.4°, si-RMSE 1.234 → 1.226 at
-  128×256, ``lighting_eval --held-out --masks 8``); where it holds less, the *missing*
-  power (predicted power − the fused map's power there) is added, coloured like the
-  unclipped ring around the region (the sun's glow; white where no ring pixel is seen),
+  level is scaled down to it (``excess="match"``: otherwise a window the net made brighter
+  than the head's prediction outshines the lamps the head restored); where it holds less,
+  the *missing* power (predicted power − the fused map's power there) is added, coloured
+  like the unclipped ring around the region (the sun's glow; white where no ring pixel is seen),
   drawn inside the region's pixels with weights ∝ (fused luminance) × the region's SG lobe
-  (centred on the region, the region's solid angle). Measured on the 5 held-out maps
-  (64×128, 39 samples, ``lighting_eval`` metrics, before "match"): si-RMSE 0.954 / RGB
-  angular 5.36° / dominant-light angle (light visible) 35.7°, against 0.976 / 5.52° / 37.9°
-  for the bare SG lobe (it spills the ring colour outside the region) and 0.941 / 5.36° /
-  48.2° for the region without the lobe (a wide clipped sky patch then reads as a weak,
-  flat light). With "match" the region without the lobe was better on the held-out maps
-  (17.3° vs 18.4°) but worse on the training maps (16.0° vs 13.2°), so the lobe stays. The
-  lobes' parameters are returned (``env.json``).
+  (centred on the region, the region's solid angle): a bare SG lobe would spill the ring
+  colour outside the region, and the region without the lobe makes a wide clipped sky
+  patch read as a weak, flat light. The lobes' parameters are returned (``env.json``).
 * **The brackets' vote** (``shared_power``, ``add_lights(trust_brackets=¼)``): the head sets
   the total clipped power, and each region's share ∝ P_head^¾ · P_brackets^¼. Which of
-  several white lamps is strongest is what the head ranks worst (held out: the strongest
-  region first in 64 % of panoramas, 62 % by EV-0 power alone); the net's EV < 0 brackets
-  carry other evidence (66 %), and the mix 77 % (``benchmarks/light_ranking.py``).
+  several white lamps is strongest is what the head ranks worst, hardly better than their
+  EV-0 power; the net's EV < 0 brackets carry other evidence, and the mix ranks best.
 """
 from __future__ import annotations
 
@@ -73,7 +65,6 @@ __all__ = ["sg_integral", "sg_sharpness", "render_lobes", "Region", "clipped_reg
 
 MAX_LOG_GAIN = 25.0       # P_true / P_seen ≤ e^25 ≈ 7e10 (a real sun at EV 0: ~1e5)
 TRUST_BRACKETS = 0.25      # add_lights: the brackets' vote on which region holds the power
-                           # (benchmarks/light_ranking.py; docs/lighting.md "The brackets' vote")
 DEFAULT_HEAD = Path(__file__).parent / "weights" / "light_head.pt"
 _FORMAT = "comgs_dr.lighting.light_head/1"
 
@@ -177,11 +168,10 @@ def downsample_clipped(ldr, mask, f: int, sat: float = SAT, fraction: float = 0.
     as observed, as a coarser capture's pixel over a light would be clipped. For running the
     head at the resolution at which clipping is known (``estimate_light.head_factor``).
 
-    ``fraction``: measured on ``recon_light_e2e``'s 7 maps and the demo at 1024×512 (head at
-    512): any clipped pixel (0) dilated forest_slope's patches of bright sky into one light
-    76° off; ½ left it 72° off; ¾ gave 5°, sunrise −3 %, mean |E ratio error| lowest; all
-    (1) turned blender_courtyard's light 158° away. A light of one full-size pixel is
-    averaged away at ¾ (such a panorama comes from a capture that saw it coarser anyway).
+    ``fraction``: a low one dilates scattered patches of bright sky into one large false
+    light, a full block (1) loses the edge of a real sun; ¾ keeps the sun and not the
+    patches. A light of one full-size pixel is averaged away at ¾ (such a panorama comes
+    from a capture that saw it coarser anyway).
     ValueError if f does not divide H and W."""
     ldr, seen = _check(ldr, mask)
     f = int(f)
@@ -235,7 +225,7 @@ def shared_power(lobes, lum, dw, a: float) -> np.ndarray:
 
 def vote_shares(pred, have, a: float) -> np.ndarray:
     """[R] Σ pred · w / Σ w, w = pred^(1−a) · have^a: the arithmetic of ``shared_power`` on
-    given powers (``benchmarks/light_ranking.py`` calls it on its rows). ValueError unless
+    given powers. ValueError unless
     0 ≤ a ≤ 1."""
     a_in, a = a, float(a)
     if not 0.0 <= a <= 1.0:
@@ -256,9 +246,8 @@ def add_lights(hdr_map, lobes, shape: str = "sg_region", sharpen: float = 1.0,
 
     ``excess``: where the map already holds more than P inside the region (a completion
     net's EV −2.5/−5 brackets re-predict clipped pixels), ``"match"`` scales that excess over
-    the EV-0 white level down to P (the head's power is the region's power: measured on
-    the held-out maps, the net put a clipped window at 1.7–1.8× its true power and 2.3× the
-    head's, so the window outshone the ceiling lamps the head had restored); ``"keep"``
+    the EV-0 white level down to P (the head's power is the region's power: a window the net
+    made too bright would otherwise outshine the lamps the head restored); ``"keep"``
     leaves it (the map's light is never removed). The missing power is drawn as
 
     * ``shape="sg"``: an SG at the region's centroid with the region's solid angle;
@@ -355,9 +344,7 @@ def dominance(regions: list[dict]) -> float | None:
     "power": the map's after the head), or None with fewer than two regions or a second of
     zero power. It says nothing of lights the completion put in the hole. Below
     ``DOMINANCE_MARGIN`` the dominant direction, and so a composited object's shadow, flips
-    with a small power error; above it the ranking can still be wrong (the head with the
-    brackets' vote puts the truly strongest region first in 77 % of the held-out panoramas
-    with ≥ 2 clipped regions, 91 % on its training maps: ``benchmarks/light_ranking.py``)."""
+    with a small power error; above it the ranking can still be wrong."""
     p = sorted((float(g["power"]) for g in regions), reverse=True)
     if len(p) < 2 or not p[1] > 0:
         return None

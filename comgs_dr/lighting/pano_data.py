@@ -248,9 +248,8 @@ def sunsky_panorama(rng: np.random.Generator, h: int = 64, w: int = 128) -> np.n
 
 def interior_colour(rng: np.random.Generator, lo: float, hi: float, warm: float = 0.6) -> np.ndarray:
     """A diffuse albedo [3] as interiors have them: value in [lo, hi], saturation mostly low
-    (0–0.6, skewed to 0), hue warm (wood, beige, terracotta) with probability ``warm``, else any.
-    Version 1 drew near-greys only, and the net trained on it filled holes greyer than the
-    scene (measured on the held-out interior map)."""
+    (0–0.6, skewed to 0), hue warm (wood, beige, terracotta) with probability ``warm``, else any:
+    a net trained on near-grey rooms fills holes greyer than real interiors."""
     hue = rng.uniform(0.02, 0.14) if rng.random() < warm else rng.uniform(0.0, 1.0)
     sat = 0.6 * rng.beta(1.2, 2.5)
     return np.clip(np.array(colorsys.hsv_to_rgb(hue, sat, rng.uniform(lo, hi))), 0.02, 0.95)
@@ -346,8 +345,7 @@ def _finish_room(rng, d: dict, sx: float, sy: float, sz: float, diffuse) -> None
     ceiling (cool or neutral white), and with probability ½ 2–4 uplights near the walls that
     make the ceiling the brightest surface. Why: the plain rooms have ceilings no brighter
     or bluer than their floors, so the scene-label classifier learnt "bright, bluer top" as
-    outdoor, and a real hall with a white ceiling over a wooden floor (``st_fagans_interior``,
-    held out) was read as outdoor in 47 of its 80 ``train-scene-label`` held-out draws."""
+    outdoor, and read a real hall with a white ceiling over a wooden floor as outdoor."""
     T = mi.ScalarTransform4f
     pale = lambda lo, hi, smax: np.clip(np.array(colorsys.hsv_to_rgb(       # noqa: E731
         rng.uniform(0.0, 1.0), rng.uniform(0.0, smax), rng.uniform(lo, hi))), 0.02, 0.95)

@@ -1,18 +1,16 @@
 """Indoor / outdoor from the observed panorama: the label the completion net, its SH blend and
 the light head are conditioned on, when the user does not give it (``label="auto"``).
 
-Why: on the 5 held-out maps (``lighting_eval --held-out --masks 16``, draw 0, 77 samples) the
-true labels give a dominant-light angle, light visible, of 24.3° against 36.3° with every
-label "unknown", relighting 18.47 vs 17.85 dB, colour angular error 5.39° vs 5.62° (the fills:
-50.4°, 17.1 dB, 6.37°). A user who runs ``estimate-light`` without ``--label`` got the second.
+Why: the models estimate the light clearly better with the true label than with "unknown"
+(the dominant light's direction most of all), and a user who runs ``estimate-light``
+without ``--label`` would otherwise get "unknown".
 
 The classifier: L2-regularised, sample-weighted logistic regression on ``FEATURES``, global
 statistics of the observed EV-0 LDR panorama by elevation band, exposure-free but for
 clipping (brightness of the upper bands relative to the whole, their blueness relative to
-the lower band, chroma, clipping, texture, and how much of them is seen). Measured effect,
-held out, against "unknown" and the true labels: docs/lighting.md, "The scene label". A linear model on a handful of physical cues rather than a
-network: it is trained on 8 real maps plus procedural skies and rooms
-(``stages.train_scene_label``) and must not learn the maps. Where it is unsure
+the lower band, chroma, clipping, texture, and how much of them is seen). A linear model on
+a handful of physical cues rather than a network: it is trained on 8 real maps plus
+procedural skies and rooms (``stages.train_scene_label``) and must not learn the maps. Where it is unsure
 (p(outdoor) within ``margin`` of ½) it answers "unknown", which is what the models were
 trained to handle without a label.
 """

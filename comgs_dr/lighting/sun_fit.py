@@ -238,8 +238,8 @@ def fit_sun(x, n, L, visibility, cfg: SunFitConfig | None = None, progress=None)
 def _plateau_direction(cache: dict) -> np.ndarray:
     """The z-weighted mean of the directions within ``PLATEAU`` of the best z. A shadow that
     ends on a wall or beyond the receivers fixes the sun's azimuth but leaves a ridge of
-    elevations nearly as good (the demo's box: z 12.8–14.2 from 3° to 20°, 11.0 at the true
-    25°); the ridge's weighted mean is the better estimate than its noisy maximum."""
+    elevations nearly as good, whose noisy maximum can lie far from the true elevation; the
+    ridge's weighted mean is the better estimate."""
     q = np.array([np.array(k) / np.linalg.norm(k) for k in cache])
     z = np.array([v[0] for v in cache.values()])
     w = np.maximum(z - PLATEAU * z.max(), 0.0)
@@ -324,9 +324,8 @@ def add_sun(radiance_eq: np.ndarray, observed: np.ndarray, fit: SunFit,
 def fitted_normals(means, normals, opacity, neighbours: int = 8, radius_spacings: float = 3.0):
     """[N, 3] normals of planes fitted to the opaque surfels around each surfel
     (:func:`comgs_dr.sops.occlusion.plane_normals`, radius ``radius_spacings`` × the median
-    distance to the ``neighbours``-th neighbour); the surfels' own orientations scatter (on
-    the demo's scene step 1: 10–15 % of them within 25° of vertical where most of the scene
-    is flat ground)."""
+    distance to the ``neighbours``-th neighbour): the surfels' own orientations scatter, many
+    steep ones even on flat ground."""
     ok = (opacity >= 0.5) & np.isfinite(means).all(1)
     if ok.sum() < 3:
         return normals
@@ -358,8 +357,7 @@ def fit_sun_in_scene(scene, params, colour_space: str = "srgb",
     wall = np.abs(normals[:, 2]) < np.cos(np.radians(WALL_TILT_DEG))
     x, n, L = receivers(means, fitted, colour, np.where(wall, 0.0, opacity), cfg)
     # shadow rays start above the surfel layer: a reconstructed ground is bumpy and tilted
-    # surfels a scale wide shade their neighbours toward a low sun (the demo's scene at
-    # 0.5 scale: 20 % of the ground "shadowed" toward the true sun, 2.6 % at 3 scales)
+    # surfels a scale wide shade their neighbours toward a low sun
     offset = OFFSET_SCALES * float(np.median(np.exp(np.asarray(d["log_scales"])).max(1)))
     vis = traced_visibility(scene, x, n, offset, cfg.max_hits)
     if len(x):                            # receivers must see the sky above them: not the

@@ -8,7 +8,7 @@ surfel count against wall-clock time, a progress bar with ETA and a PSNR plot.
 
 One training view per iteration (full image): SSIM needs image structure, and on the
 CPU the per-iteration cost is dominated by fixed overheads (BVH update, kernel
-launches) that a smaller random ray batch would not remove (see benchmarks/recon_step1.py).
+launches) that a smaller random ray batch would not remove.
 """
 from __future__ import annotations
 
@@ -51,34 +51,32 @@ PARAM_KEYS = {f: f"surfels.{f}" for f in field_names() if f not in ("albedo", "r
 
 @dataclasses.dataclass
 class RadianceConfig:
-    """Step-1 settings; ``RadianceConfig.preset(name, **overrides)`` for a named preset.
+    """Step-1 settings; ``RadianceConfig.from_preset(name, **overrides)`` for a named preset.
 
     Presets (``PRESETS``): ``object`` starts from the visual hull's surface along the training
-    pixels' rays (:func:`comgs_dr.train.init.hull_ray_points`; on the detail stress object,
-    ``make-dataset object --mesh detail`` at 100 px, 25.84 dB test PSNR after 600 s against
-    23.06 dB from the volume-carved shell, whose points missed the sub-pixel rods),
-    adds the mask loss and caps σ at 1 % of the extent; ``scene`` starts from the dataset's
-    points (COLMAP, or ``points3d.ply`` beside NeRF-style JSON), else random points in the
-    common view frustum, has no mask loss and caps σ at 2 %.
+    pixels' rays (:func:`comgs_dr.train.init.hull_ray_points`: unlike a volume-carved shell,
+    its points reach structures thinner than a pixel), adds the mask loss, caps σ at 1 % of the
+    extent and uses a lower scale learning rate; ``scene`` starts from the dataset's points
+    (COLMAP, or ``points3d.ply`` beside NeRF-style JSON), else random points in the common view
+    frustum, has no mask loss and caps σ at 2 %.
 
-    Defaults that differ from 2DGS were measured on 2 CPU cores (spot object: 100 views,
-    128 px, ~15 min; table-top scene: ``comgs make-dataset scene``, 1500 its):
+    Defaults that differ from 2DGS, and why:
 
-    * ``lambda_d2n`` 0.2 from iteration 300 (paper 0.05 from 7k of 30k): 0.05 from 600 peaked
-      at 30.3 dB and collapsed to 25.5 dB by 2000 its; 0.2 from 300 reached 31.73 dB, normal
-      MAE 5.8° at 3841 its.
-    * ``init_opacity`` 0.5 (3DGS 0.1): +2.7 dB at 300 its with the shell init;
-      ``init_normals`` off: +0.6 dB at 250 its but −3 dB at 500 its.
-    * colour learning rates 2× 3DGS; larger scale/rotation rates grew hazy surfels (−6 dB).
+    * ``lambda_d2n`` 0.2 from iteration 300 (paper 0.05 from 7k of 30k): in runs of a few
+      thousand iterations the weaker, later depth–normal prior lets the surfaces drift and the
+      fit collapse after its peak.
+    * ``init_opacity`` 0.5 (3DGS 0.1): the hull and point inits already lie on the surface;
+      ``init_normals`` off: normals from the initial points help the first few hundred
+      iterations and hurt later.
+    * colour learning rates 2× 3DGS; scale and rotation rates as 3DGS (larger ones grow hazy
+      surfels).
     * prune-only density control (``densify=None``); the strategy
       (:class:`comgs_dr.train.strategy.DefaultStrategy`) clones/splits with ``densify``
-      (DensityConfig fields, {} for its 2DGS defaults). With every surfel composited,
-      clone/split (≤ 5 % per 100 its from 500 to 1500, budget 60k, no reset) was −0.27 dB at
-      1250 its on the 48-view teapot with 27k instead of 18k surfels, +0.08 dB at 750 its on
-      the outdoor scene (docs/step1.md): not yet a default.
+      (DensityConfig fields, {} for its 2DGS defaults). With every surfel on a ray composited,
+      clone/split adds surfels without improving the fit, so it is off by default.
     * ``max_scale_frac`` (largest σ / extent; None: the preset's): without a cap a few object
-      surfels grew to σ ≈ 0.17–0.3 and hazed the fit (29.9 → 19.8 dB at 1180 its); scenes
-      20.8 vs 18.4 dB at 750 its with a 2 % cap vs none (a hazy floater above the scene).
+      surfels grow to a large fraction of the object and haze the fit, and a scene grows hazy
+      floaters.
     """
     preset: str = "object"
     iterations: int = 3000
@@ -99,8 +97,8 @@ class RadianceConfig:
                                           # (train.background); auto: resolve_background
     env_resolution: int = 64              # octahedral texels per side of the env background
     lr_env: float = 0.01
-    # None: constant; else lr_env decays exponentially to it. 0.001 cleaned a smooth sky
-    # (sunrise: error 0.039 → 0.024) but under-fitted detailed ones (kiara 0.101 → 0.149)
+    # None: constant; else lr_env decays exponentially to it (a low final rate cleans a
+    # smooth sky but under-fits a detailed one)
     lr_env_final: float | None = None
     lambda_binary: float = 0.05           # coverage entropy, with the env background only
     init_far_field: bool = True           # env background + near/far init: pixels as
@@ -162,18 +160,11 @@ class RadianceConfig:
                            d2n_from_iteration=self.d2n_from)
 
 
-# object: max_scale_frac 0.01 of the extent is not right for every object (open question).
-# The detail stress object (radius 1.55, extent 5.56) fell from 26.67 dB (1750 its) to
-# 22.96 dB (3000 its; the best state is restored) with the σ of 10 % of its surfels at the
-# cap; capped at 0.003 of the extent it still rose at 2500 its (26.46 dB) and led from the
-# start (24.75 vs 22.98 dB at 500). But the 48-view teapot lost ~1 dB with a cap that tight
-# (26.91 vs 27.86 dB at 1000 its): a cap relative to the object's radius or to the initial
-# surfel spacing did not fit both, and densification (which would split large surfels) is
-# not yet stable here.
-# object: lr_scales 1e-3 (not 5e-3). On the 48-view teapot (four rings, −10° to 70°) the
-# σ of ~6 % of the surfels grew to the cap within 1000 its while the test PSNR fell from
-# 28.1 dB (625 its) to 26.0 dB; with 1e-3 none reached it and the PSNR still rose at 875 its
-# (27.55 dB). Hidden surfels then fade instead (25 % below opacity 0.05, pruned later).
+# object: max_scale_frac 0.01 of the extent is a compromise: an object with sub-pixel detail
+# fits better with a tighter cap, a smooth one loses with it, and neither a cap relative to
+# the object's radius nor one relative to the initial surfel spacing suits both.
+# object: lr_scales 1e-3 (not 5e-3): at 5e-3 the σ of some surfels grows to the cap and the
+# test PSNR falls; at 1e-3 hidden surfels fade instead (and are pruned).
 PRESETS = {"object": {"max_scale_frac": 0.01, "lr_scales": 1e-3}, "scene": {"max_scale_frac": 0.02}}
 
 
@@ -363,9 +354,7 @@ class Trainer(TrainerBase):
 
         Over a fixed black (or white) background, lowering a surfel's opacity darkens (or
         brightens) the pixel, so the photometric loss can fit shading and view-dependent
-        colour with holes: measured on a 48-view object (teapot, four rings from −10° to
-        70°), 35 % of its silhouette pixels ended with weight < 0.9 and the test PSNR fell
-        from 28.1 dB (625 its) to 26.0 dB (1000 its). Behind a random grey a hole is wrong on
+        colour with holes in the silhouette. Behind a random grey a hole is wrong on
         average, as NeRF trainers do for RGBA data.
         """
         if self.env or not self.cfg.random_background or any(m is None for m in self.masks):

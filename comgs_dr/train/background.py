@@ -14,9 +14,8 @@ opaque surfels, or never, are not observed and are left to the completion networ
 
 The captures are LDR: a sun or lamp is stored at the white level in one or two pixels, and
 the fit (TV-smoothed, [0, 1], texels larger than those pixels) averages it with the sky
-around it, below white (``benchmarks/recon_light_e2e.py``: blender_sunrise's sun came back
-at 0.954, no clipped region was found at the placement and the sun's power was lost:
-E(sun)/E(up) −61 %). :func:`capture_maps` therefore also records
+around it, below white: the placement's panorama would then hold no clipped region and
+the sun's power would be lost. :func:`capture_maps` therefore also records
 the rays that saw the open sky (T_final ≥ ½) *clipped* (≥ ``CLIPPED`` in a channel): their
 directions, channels and pixel sizes. The placement's panorama shows those directions at
 white, so the light head finds the light there (``surfels.panorama.composite_background``).

@@ -100,7 +100,7 @@ class DensityController:
         scale = np.exp(np.clip(p["log_scales"], -20, 12)).max(1)
         hot = grad >= c.grad_threshold
         # Early in a short schedule nearly every surfel exceeds the 3DGS threshold; growing
-        # them all at once doubles the count per step and wrecks the fit (measured), so only
+        # them all at once doubles the count per step and wrecks the fit, so only
         # the largest gradients up to max_fraction (and the max_surfels budget) are taken.
         budget = min(max(0, c.max_surfels - n) // max(c.split_children, 1), int(c.max_fraction * n))
         if hot.sum() > budget:
@@ -172,8 +172,7 @@ def _remap_optimizer(opt, keys: dict, src: np.ndarray, old: np.ndarray, new: Sur
         mm[~old] = 0                         # new surfels: no momentum, but their source's
         # second moment: Adam's step count is shared by all surfels, so with v = 0 and no
         # bias correction a new surfel's step is lr·(1 − 0.9^k)/√(1 − 0.999^k): 6.5× lr after
-        # 10 steps, 3× after 100 (measured: 2DGS-style densification of the detail object
-        # then fell from 22.4 to 19.4 dB test PSNR)
+        # 10 steps, 3× after 100: large enough to throw the new surfels off the surface
         value2, promoted2, lr2, _ = opt.state[key]
         opt.state[key] = (value2, promoted2, lr, (t, field_from_numpy(field, mm, like),
                                                   field_from_numpy(field, vv, like), None))

@@ -1,11 +1,9 @@
 """Edge-aware smoothness of the surfels' materials over their neighbour graph (step 2).
 
 Not in the paper. Under one capture light, albedo, roughness and metallic of a surfel are
-only weakly determined by its few pixels, and step 2 fits them independently: on the
-demo's dielectric object (true metallic 0, roughness 0.35) the opaque surfels came out
-with metallic 0.21 on average (0.40 after 1000 iterations) and 10 % of them below
-roughness 0.17, which the relit object shows as sparkles and a paler colour. The prior
-ties each surfel to its nearest neighbours unless the step-1 colours differ (a texture
+only weakly determined by its few pixels, and step 2 fits them independently: a
+dielectric object gets spurious metallic and scattered low roughness, which the relit
+object shows as sparkles and a paler colour. The prior ties each surfel to its nearest neighbours unless the step-1 colours differ (a texture
 or material edge):
 
     L_smooth = Σ_(i,j) w_ij (|a_i − a_j|₁ / 3 + |r_i − r_j| + |m_i − m_j|) / Σ w_ij,
@@ -16,10 +14,9 @@ nearest-neighbour distance; c the step-1 base colour (SH band 0, display sRGB), 
 opacity. Step 2 keeps the geometry fixed, so the graph is built once (scipy's cKDTree)
 and the loss is a gather per step; it is the point-space counterpart of the image-space,
 edge-aware material smoothness common in Gaussian inverse rendering. Its weight
-(``MaterialConfig.lambda_smooth``) defaults to 0 while step 2 learns the light — there it
-makes the materials plausible at no cost to the fit but moved the scale-aligned albedo
-error up on two of three objects — and to 0.1 under a known capture light, where it gives
-the object its colour (``benchmarks/material_priors.py``; the tables in the README, step 2).
+(``MaterialConfig.lambda_smooth``) defaults to 0 while step 2 learns the light — the
+albedo/light split is ambiguous there and the prior only moves the albedo's error around —
+and to 0.1 under a known capture light, where it gives the object its colour.
 """
 from __future__ import annotations
 
