@@ -183,7 +183,7 @@ class BorderRefresher:
     """Re-copies the wrap border of a flat bordered atlas in place (after an optimiser step).
 
     Keeping the *bordered* atlas as the optimised parameter and refreshing its border
-    outside the differentiated graph was measured faster than building the border inside
+    outside the differentiated graph is faster than building the border inside
     the graph; the gradient that bilinear lookups put on border texels is dropped by it.
     """
 
@@ -262,8 +262,8 @@ _VEC = {1: "Float", 3: "Color3f", 4: "Vector4f"}
 
 
 def expand_mode(source):
-    """``ReduceMode.Expand`` for sources that need gradients (fast backward scatter-add,
-    measured), the default otherwise: Expand-mode gathers from *non-differentiable*
+    """``ReduceMode.Expand`` for sources that need gradients (fast backward scatter-add),
+    the default otherwise: Expand-mode gathers from *non-differentiable*
     sources inside a graph that is later differentiated were seen to segfault Dr.Jit 1.5."""
     return dr.ReduceMode.Expand if dr.grad_enabled(source) else dr.ReduceMode.Auto
 
@@ -273,7 +273,7 @@ def lookup(atlas, taps: Taps, channels: int):
     ``mi.Color3f`` or ``mi.Vector4f``.
 
     One vector gather per tap, with ``ReduceMode.Expand`` so the backward scatter-add is
-    fast (measured).
+    fast.
     """
     if channels not in _VEC:
         raise ValueError(f"atlas lookups support 1, 3 or 4 channels, got {channels}")

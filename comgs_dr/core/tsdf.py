@@ -17,11 +17,11 @@ votes (+1, as a standard TSDF integrates far-front voxels). A voxel with none is
 (+1) if any view carved it, else inside (−1) when its behind votes outnumber its front
 votes; a voxel with band observations but no carving is also inside when its behind votes
 outnumber its band and front observations together (one view that sees through a hole
-cannot open the inside) — unless its connected region of such voxels reaches the grid's border (space no view
-saw, e.g. beyond the frames' edges or under an object on a table), which is outside. Measured on a sphere of mesh-sampled surfels (3–6 % of pixels with
-depth errors > 10 % of the radius): letting one front vote decide carved bubbles inside
-it (mean Chamfer 11 % of the radius); a plain majority over all votes filled the unseen
-space under an object captured from above (19 %).
+cannot open the inside) — unless its connected region of such voxels reaches the grid's
+border (space no view saw, e.g. beyond the frames' edges or under an object on a table),
+which is outside. With noisy surfel depths, letting one front vote decide carves bubbles
+inside the object, and a plain majority over all votes fills the unseen space under an
+object captured from above.
 
 The zero level set is extracted by ``skimage.measure.marching_cubes`` on the grid padded
 with +1, so the surface is closed. Colours (any [H, W, C] image per view) are averaged over

@@ -10,8 +10,8 @@ sensor the geometry buffers *and* each covered pixel's composite weights w_ik = 
 over its hit surfels are computed once and cached. A material buffer is then the exact
 alpha-blend B(p) = Σ_k w_pk b_{i_k} (paper eq. Multi-Target Rendering), evaluated as a
 gather over the cached hits — differentiable w.r.t. the per-surfel materials, with no
-re-trace and no custom backward pass (measured much cheaper than ``mi.render`` of the
-material targets on every iteration).
+re-trace and no custom backward pass (much cheaper than ``mi.render`` of the material
+targets on every iteration).
 """
 from __future__ import annotations
 

@@ -213,5 +213,5 @@ def shade(pts: ShadingPoints, env, visibility, cfg: ShadingConfig, seed: int = 0
         L = L + L_in
     ok = (pdf > 0.0) & (cos_i > 0.0)
     contrib = dr.select(ok, f * L * cos_i / dr.maximum(pdf, 1e-12), 0.0)  # [N*S]
-    dr.eval(contrib)          # evaluate the wide RGB before the block sum (measured faster)
+    dr.eval(contrib)          # evaluate the wide RGB before the block sum (faster)
     return dr.block_sum(contrib, s) / s                                    # [N]

@@ -2,8 +2,7 @@
 
 A cached occlusion probe stores O'(ω) in octahedral texels of 4–11° (32² / 16²), blended
 across neighbouring probes: right for the sky's soft occlusion, but a sun of 0.5–3° seen
-through it casts a blurred, lighter shadow (``benchmarks/shadow_terms.py``: on the demo,
-SOP shadows reach 0.74 of the truth's depth where traced ones reach 0.86 under the same map).
+through it casts a blurred, lighter shadow than a traced one under the same map.
 Splitting the map into the source's texels and the rest lets the shadow ratio trace a few
 rays per pixel toward the source (exact, cheap: one compact cone) and keep the probes for
 the rest. The two maps sum to the original exactly (lookups are linear in the texels), so

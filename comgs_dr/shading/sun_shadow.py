@@ -1,9 +1,8 @@
 """A sun's shadow map: the placed objects' transmittance toward the sun, traced once.
 
 Why: a compact source's shadow needs its visibility at a finer angle than the occlusion
-probes' texels (4–11°), and tracing sun rays per pixel and frame (exact) costs 2–3× the rest
-of a frame on 2 cores: a ray that crosses the object composites 8–32 semi-transparent
-surfels. The sun's direction is fixed for a composition, so its visibility is a 2D function
+probes' texels (4–11°), and tracing sun rays per pixel and frame (exact) costs more than the
+rest of a frame: a ray that crosses the object composites many semi-transparent surfels. The sun's direction is fixed for a composition, so its visibility is a 2D function
 of where a receiver's ray crosses the objects: the classic shadow map, stored as
 transmittance (soft, deep: every surfel composited) rather than as a first depth.
 

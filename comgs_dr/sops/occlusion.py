@@ -43,8 +43,7 @@ log = logging.getLogger(__name__)
 class ShadowConfig:
     count: int = 10000               # shadow-region probes per object (sec. 4.1: 10k)
     # 32² texels, one ray each: the same 1024 rays per probe as 16² × 2² supersampling, but
-    # sharper low-sun shadows (measured on `benchmarks/composition.py`: 24.89 vs 24.64 dB,
-    # trace 25.19 dB; same edit time). The paper's SOPs use 16².
+    # sharper low-sun shadows at the same edit time. The paper's SOPs use 16².
     res: int = 32                    # octahedral texels per side
     box_factor: float = 6.0          # region = object bounds × 6 around the object's centre
     offset_frac: float = 0.01        # probe offset along the normal, × object size
@@ -105,10 +104,9 @@ def plane_normals(points, normals, at, radius: float, iterations: int = 6,
 
     Why: fused depth points lie on the surface within their depth noise, so a plane fit over
     a few hundred of them is flat to a few degrees where their own normals (alpha-blended
-    surfel normals) scatter by ~30° (the demo's ground: 32° mean error, 4.6° fitted at 0.2
-    units). The fit is reweighted ``iterations`` times by the residuals (Tukey's biweight,
-    cut at 3 × the median residual), so points across an edge — a ground meeting a wall —
-    drop out (0.1 from a wall: 0.9° off with 6 iterations; 4° with 3 Cauchy-weighted).
+    surfel normals) scatter by tens of degrees. The fit is reweighted ``iterations`` times by
+    the residuals (Tukey's biweight, cut at 3 × the median residual), so points across an
+    edge — a ground meeting a wall — drop out.
     Fewer than 3 points in reach: the nearest point's own normal. All probes at once
     (batched 3×3 eigendecompositions)."""
     from scipy.spatial import cKDTree

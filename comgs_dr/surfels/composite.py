@@ -40,8 +40,8 @@ INVALID = 0xFFFFFFFF
 # Parameters that a target does not depend on (e.g. albedo for depth) are legal.
 _AD_FLAGS = dr.ADFlag.Default | dr.ADFlag.AllowNoGrad
 # Reverse mode turns every parameter gather of a hit into a scatter-add (≈35 per hit with
-# SH degree 2). ReduceMode.Expand (per-thread copies, no atomics) measured no faster on
-# 2 cores (f+b 0.84 vs 0.79 s, 20k surfels at 256²), so Auto stays.
+# SH degree 2). ReduceMode.Expand (per-thread copies, no atomics) is no faster on a few CPU
+# cores, so Auto stays.
 ADJOINT_MODE = dr.ReduceMode.Auto
 ULP_STEP = 2.0 ** -21          # ≈ 4 ulps of float32: the smallest origin advance that progresses
 BASE_TARGETS = ("color", "weight", "depth", "normal", "albedo", "roughness", "metallic")
@@ -175,7 +175,7 @@ def surfel_values(shapes, slot, index, ray, active, names, mode=dr.ReduceMode.Au
 def _opaque(value: float):
     """A scalar as an opaque JIT variable: a literal would be compiled into the kernel, and
     a new value (step 1 draws a random background each step) would recompile the whole
-    render every iteration (measured: 316 vs 106 ms per step-1 step at 100 px)."""
+    render every iteration."""
     return dr.opaque(mi.Float, float(value))
 
 

@@ -63,11 +63,9 @@ class GroupBuffers:
         ``valid`` is False where a pixel has no usable neighbour on an axis; there the
         surfels' normal is returned.
 
-        Why: the surfels' normals of a briefly trained scene scatter about the surface
-        (the demo's ground: n_z median 0.75–0.84 in the object's shadow, cos to the sun
-        −0.15…0.75 per frame for a true 0.39), and the shadow ratio weights the light by
-        that cosine, so the sun's shadow came out patchy and light; the rendered depth of
-        the same surfels is smooth (n_z 0.92–0.95 there)."""
+        Why: the surfels' normals of a briefly trained scene scatter about the surface, and
+        the shadow ratio weights the light by their cosine to it, so the sun's shadow would
+        come out patchy and light; the rendered depth of the same surfels is smooth."""
         h, w = self.shape
         idx = dr.arange(mi.UInt32, h * w)
         row, col = idx // w, idx % w

@@ -31,8 +31,8 @@ SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658,
 def clamp_closed(x, lo, hi):
     """``x`` clamped to [lo, hi], with gradient 1 on the closed interval (0 outside).
     ``dr.clip`` has gradient 0 *at* the bounds too, and step 2 clamps its materials to the
-    bounds after every step: a surfel at metallic 0 or albedo 1 got no gradient through
-    ``mi.render`` again (an optimiser never moved it), though the one-sided derivative is
+    bounds after every step: a surfel at metallic 0 or albedo 1 would get no gradient through
+    ``mi.render`` again (an optimiser would never move it), though the one-sided derivative is
     what a projected-gradient step needs."""
     return dr.select((x >= lo) & (x <= hi), x, dr.clip(x, lo, hi))
 

@@ -21,8 +21,8 @@ values and gradients are those of the tracer for the same hit list. The hit list
 the tracer's (coplanar surfels, e.g. of ``from_mesh`` faces, in the order of their
 jittered proxies, as the tracer finds them) up to ties: hits at the ±3σ border or at
 α = 1/255 within float rounding, and hits the tracer misses because their proxy lies
-within its origin step (ε or ~4 ulps) of another one; see ``tests/test_raster.py`` for
-the measured agreement.
+within its origin step (ε or ~4 ulps) of another one (``tests/test_raster.py`` checks
+the agreement).
 
 Binning runs in NumPy (O(N) projection, one stable radix sort of the entries); the
 walk is one Dr.Jit kernel. Written by hand because no library rasterises 2D Gaussian

@@ -123,7 +123,8 @@ class SurfelShapeBase:
     def parameters_changed(self, keys=[]):
         """New parameters: the proxy quads and the BVH are rebuilt lazily, by
         :func:`ensure_proxies` before the next trace. Rasterised renders never trace, so an
-        optimisation step of step 1 does not pay the BVH rebuild (~60 % of an iteration)."""
+        optimisation step of step 1 does not pay the BVH rebuild (a large share of an
+        iteration)."""
         if self._building:
             _base(self).parameters_changed(self, keys)
             return

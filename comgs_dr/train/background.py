@@ -66,8 +66,8 @@ def clamp(opt) -> None:
 
 def total_variation(data) -> "mi.Float":
     """Mean |Δ| between neighbouring texels of the [R, R, 3] map (anisotropic TV, L1 keeps
-    the sun's edge). Texels that few rays touch, and only with small bilinear weights, were
-    pushed to extremes by the photometric loss alone (a sky texel at blue = 1 read as a
+    the sun's edge). Texels that few rays touch, and only with small bilinear weights, are
+    pushed to extremes by the photometric loss alone (a sky texel at blue = 1 reads as a
     clipped light at the placement); Adam normalises every texel's step, so for them this
     term decides and smooths them towards their neighbours."""
     t = data if isinstance(data, mi.TensorXf) else to_jit(mi.TensorXf, data)
@@ -107,13 +107,13 @@ def capture_maps(scene, integ, sensors: list[int], resolution: int, images=None,
     "weight" [M] (T_final), "radius" [M] (the pixel's equal-area angular radius, rad)}.
 
     Rays, not texels: a one-pixel sun stays the size of a capture pixel whatever the
-    background's resolution (with 64² texels, 3.2° wide, a texel record made it 10× the sun's
-    solid angle, and the light head reads a region's size).
+    background's resolution (a texel record would make it as large as a texel, several
+    times the sun's solid angle, and the light head reads a region's size).
 
     ``masks`` (per sensor [H, W] alpha, or None): a transparent pixel shows no sky, so a ray
-    counts as T_final × alpha. A capture rendered with the sky hidden (alpha 0 there) taught
-    the background black and, counted as seen, put 13.7 % of a sky at the placement that no
-    image showed (the completion never filled it)."""
+    counts as T_final × alpha: a capture rendered with the sky hidden (alpha 0 there) teaches
+    the background black, and counted as seen it would put a sky at the placement that no
+    image showed (and that the completion would never fill)."""
     obs = np.zeros(resolution * resolution, np.float64)
     rec = None if images is None else {"directions": [], "channels": [], "weight": [],
                                        "radius": []}

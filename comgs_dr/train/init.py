@@ -285,14 +285,13 @@ def near_far_points(views, near_far, n: int, rng: np.random.Generator, candidate
 
     ``far_field`` (with ``candidates`` > 1): one more candidate ``FAR_FIELD_DEPTH`` × far away,
     i.e. at infinity; a pixel whose patch matches there about as well as at its best finite
-    depth (``FAR_FIELD_TOL``) shows no parallax — the sky, or a distant low-texture wall (on
-    the default ``make-dataset llff`` scene 26 % of the backdrop's pixels at 8–20 m) — and
+    depth (``FAR_FIELD_TOL``) shows no parallax — the sky, or a distant low-texture wall — and
     its point is dropped, left to a learned background (``reconstruct --background env``,
     ``RadianceConfig.init_far_field``). A pixel no neighbour sees at any finite depth is kept.
-    Why: every pixel gets a point between near and far, so a forward-facing capture's sky
-    was held by surfels at the far bound, the background learnt nothing (9 % of its texels
-    observed on a ``make-dataset llff --envmap`` capture), and from a placement in the scene
-    those surfels hung overhead as a clipped white ceiling.
+    Why: otherwise every pixel gets a point between near and far, so a forward-facing
+    capture's sky is held by surfels at the far bound, the background learns almost
+    nothing, and from a placement in the scene those surfels hang overhead as a clipped
+    white ceiling.
 
     Returns (points [n', 3] float32, colours [n', 3] float32, normals [n', 3] float32 unit),
     n' = n, or n minus the far-field pixels.
