@@ -45,13 +45,26 @@ OBJECT = "torus"
 OBJECT_MATERIAL = {"texture": None, "base_color": (0.8, 0.35, 0.1), "roughness": 0.35,
                    "metallic": 0.0}
 VARIANTS = ("sop", "trace", "paste")
+OBJECT_LIGHTS = ("learnt", "known")
 
 
 @dataclasses.dataclass
 class DemoConfig:
     """Sizes of the demo. Presets (``PRESETS``): ``default`` (128 px captures, 256 px
-    composites: about 11 minutes on 2 cores) and ``tiny`` (tests and CI: about a minute;
-    numbers meaningless)."""
+    composites: about 11 minutes on 2 CPU cores) and ``tiny`` (a smoke test for tests and
+    CI, about a minute; its numbers mean nothing).
+
+    Sizes in pixels, angles in degrees. The scene is captured from ``scene_views`` views
+    looking down at the ground (``scene_elevation_deg``) and ``sky_views`` from eye height
+    over the horizon (``sky_pitch_deg``), which see the sky and the sun; the object from
+    ``object_views``; ``test_views`` composites are scored. ``spp``: samples per pixel of the
+    path-traced ground truth; ``rays``: S_r of the composition renders (step 2 uses at most
+    64). ``object_light``: ``learnt`` (step 2 learns the object's capture light, the general
+    case) or ``known`` (step 2 under the object's studio map, ``decompose --env-file``).
+    ``probe_height``: rows of the true light path-traced at the placement, the reference of
+    the lighting error. Example: ``run_demo(dataclasses.replace(PRESETS["tiny"],
+    out_dir="out/t"))``.
+    """
     out_dir: str = "out/demo"
     resolution: int = 128                       # the captures (scene, object)
     comp_resolution: int | None = 256           # the composition frames (None: resolution)
@@ -65,26 +78,23 @@ class DemoConfig:
     sky_pitch_deg: tuple = (10.0, 40.0)
     scene_env_resolution: int = 128             # texels per side of step 1's sky
     sun_elevation_deg: float = 25.0
-    sun_radius_deg: float = 3.0                 # 1.5 (same power) measured worse: 19.46 dB
+    sun_radius_deg: float = 3.0                 # the sky's sun disc (its power is fixed)
     scene_exposure: float = 0.6                 # exposed for the sky: only the sun clips
     scene_background: str = "env"               # step 1 learns the sky behind the surfels
     scene_iterations: int = 800
     object_iterations: int = 800
     material_iterations: int = 300
-    object_light: str = "learnt"                # learnt (the general case) | known: step 2
-                                                # under the object's studio map (--env-file)
+    object_light: str = "learnt"                # learnt | known (see above)
     probes: int = 2000
     shadow_probes: int = 2000
     rays: int = 128
-    probe_height: int = 256                     # rows of the true light path-traced at the
-                                                # placement (the lighting error's reference)
+    probe_height: int = 256                     # rows of the true light at the placement
     seed: int = 0
     progress: bool = True
 
     def __post_init__(self):
-        """Sizes are checked here, before anything is written (``--res 0`` used to render
-        the procedural inputs first)."""
-        if self.object_light not in ("learnt", "known"):
+        """Sizes are checked here, before anything is written or rendered."""
+        if self.object_light not in OBJECT_LIGHTS:
             raise ValueError(f"DemoConfig.object_light must be learnt or known, got "
                              f"{self.object_light!r}")
         lows = {"resolution": 8, "sfm_points": 0, "seed": 0, "sky_views": 0, "probe_height": 4}
@@ -196,101 +206,31 @@ def run_demo(cfg: DemoConfig) -> dict:
     (out / "inputs").mkdir(parents=True, exist_ok=True)
     times: dict[str, float] = {}
     prog = cfg.progress
-
     with _stage("inputs + path-traced ground truth", times, prog):
-        mesh = procedural.procedural_object_yup(out / "inputs" / f"{OBJECT}.ply")
-        sky = procedural.procedural_sky(out / "inputs" / "sky.exr",
-                                        sun_elevation_deg=cfg.sun_elevation_deg,
-                                        sun_radius_deg=cfg.sun_radius_deg)
-        studio = procedural.procedural_studio(out / "inputs" / "studio.exr")
-        ds = out / "dataset"
-        make_composition_dataset(CompositionDatasetConfig(
-            out_dir=ds, objects=(str(mesh),), scene_map=sky, object_map=studio,
-            resolution=cfg.resolution, comp_resolution=cfg.comp_resolution,
-            scene_views=cfg.scene_views,
-            object_views=cfg.object_views, test_views=cfg.test_views, spp=cfg.spp,
-            sfm_points=cfg.sfm_points, seed=cfg.seed, path_material=OBJECT_MATERIAL,
-            scene_elevation_deg=cfg.scene_elevation_deg, sky_views=cfg.sky_views,
-            sky_pitch_deg=cfg.sky_pitch_deg,
-            scene_envmap_scale=cfg.scene_exposure),
-            progress=prog)
+        ds, studio = _ground_truth(cfg, out)
         meta = json.loads((ds / "composition.json").read_text())
-
     scene_run, obj_run = out / "scene_run", out / "object_run"
     with _stage("scene step 1 (surfels)", times, prog):
-        write_run_info(scene_run, ds / "scene", "scene", 1, False)
-        s1 = train_radiance(load_dataset(ds / "scene"), scene_run, RadianceConfig.from_preset(
-            "scene", iterations=cfg.scene_iterations, eval_every=max(cfg.scene_iterations // 8, 1),
-            eval_views=4, seed=cfg.seed, background=cfg.scene_background,
-            env_resolution=cfg.scene_env_resolution), progress=prog)
+        s1 = _scene_step1(cfg, ds, scene_run)
     with _stage("object step 1 (surfels)", times, prog):
-        write_run_info(obj_run, ds / "objects" / OBJECT, "object", 1, False)
-        o1 = train_radiance(load_dataset(ds / "objects" / OBJECT), obj_run,
-                            RadianceConfig.from_preset(
-                                "object", iterations=cfg.object_iterations,
-                                eval_every=max(cfg.object_iterations // 8, 1), eval_views=4,
-                                seed=cfg.seed), progress=prog)
+        o1 = _object_step1(cfg, ds, obj_run)
     with _stage("object step 2 (materials, env map, SOPs)", times, prog):
-        o2 = train_material(obj_run, None, MaterialConfig(
-            iterations=cfg.material_iterations, probe_count=cfg.probes, rays=min(cfg.rays, 64),
-            eval_every=max(cfg.material_iterations // 6, 1), eval_views=4,
-            env_file=str(studio) if cfg.object_light == "known" else None), progress=prog)
-
-    estimated = {}
-    backend = backends.default_backend()
-    scene_ply = str(scene_run / "point_cloud.ply")
-
-    def estimator(pos, name):
-        estimated["position"] = np.asarray(pos, np.float64)
-        estimated[OBJECT] = estimate_light(scene_ply, pos, EstimateConfig(label="outdoor"), backend)
-        return estimated[OBJECT]["hdr"]
-
+        o2 = _object_step2(cfg, obj_run, studio)
+    estimator = PlacementEstimator(str(scene_run / "point_cloud.ply"), backends.default_backend())
     comp = out / "comp"
     with _stage("lighting estimation + occlusion caching", times, prog):
-        ccfg = COMPOSE_PRESETS["fast"]
-        ccfg = dataclasses.replace(ccfg, shadow=dataclasses.replace(ccfg.shadow,
-                                                                    count=cfg.shadow_probes))
-        edit = compose(scene_run, {OBJECT: obj_run}, ds / "transform.json", comp,
-                       estimator=estimator, cfg=ccfg, progress=prog)
-        write_outputs(estimated[OBJECT], out / "light" / "estimate.exr")
-
-    scores = {}
+        edit = _compose(cfg, ds, scene_run, obj_run, comp, estimator)
+        write_outputs(estimator.estimate, out / "light" / "estimate.exr")
     with _stage("rendering the composition", times, prog):
-        for v in VARIANTS:
-            scores[v] = render_comp(comp, ds / "comp" / "transforms_test.json", v,
-                                    ds / "comp" / "gt", rays=cfg.rays, seed=cfg.seed,
-                                    progress=prog)
-
-    # figures and the lighting error at the placement
+        scores = _render_composition(cfg, ds, comp)
     names = [f["name"] for f in scores["sop"]["per_frame"]]
-    comparison_figure(ds / "comp" / "gt", {v: comp / "renders" / v for v in VARIANTS}, names,
-                      scores).save(out / "comparison.png")
-    region_figures(ds / "comp", {v: comp / "renders" / v for v in VARIANTS}, names, out)
-    est = estimated[OBJECT]["hdr"]
-    # the truth: the light that arrives at the placement (the scene without the object,
-    # path-traced from there); the map itself ignores the scene's shadows and ground
-    true_eq = placement_probe.render_probe(placement_probe.empty_scene(ds),
-                                           estimated["position"], cfg.probe_height, 8)
-    envmap_figure(true_eq, est).save(out / "envmaps.png")
-    light_err = lighting_metrics.compare_maps(est, true_eq)
-    map_eq = envmap.read_envmap_file(meta["scene"]["envmap"])[0] * meta["scene"]["envmap_scale"]
-    light_err_map = lighting_metrics.compare_maps(est, map_eq)
-
+    light = _figures_and_light_error(cfg, out, ds, comp, scores, names, estimator, meta)
     summary = {
         "variant": variant, "config": dataclasses.asdict(cfg), "stage_seconds": times,
         "total_seconds": round(time.perf_counter() - t_start, 1),
-        "composition": {v: {"psnr": scores[v]["psnr"], "ssim": scores[v]["ssim"],
-                            "frame_seconds": scores[v]["frame_seconds"]} for v in VARIANTS},
-        "sop_beats_paste_frames": int(sum(a["psnr"] > b["psnr"] for a, b in zip(
-            scores["sop"]["per_frame"], scores["paste"]["per_frame"]))),
-        "frames": len(names),
-        "region": {v: scores[v].get("region") for v in VARIANTS},
-        "sop_beats_paste_frames_region": int(sum(
-            a.get("psnr_region", -np.inf) > b.get("psnr_region", np.inf) for a, b in zip(
-                scores["sop"]["per_frame"], scores["paste"]["per_frame"]))),
+        **_composition_scores(scores, names),
         "scene_step1_psnr_test": s1["psnr_test"], "object_step1_psnr_test": o1["psnr_test"],
-        "object_step2_psnr_test": o2["psnr_test"], "lighting": light_err,
-        "lighting_vs_map": light_err_map,
+        "object_step2_psnr_test": o2["psnr_test"], **light,
         "edit_seconds": edit["timings"],
     }
     (out / "demo.json").write_text(json.dumps(runlog.json_safe(summary), indent=1,
@@ -299,3 +239,119 @@ def run_demo(cfg: DemoConfig) -> dict:
     report.write_report(out, out / "report.html", title="comgs demo")
     summary["report"] = str(out / "report.html")
     return summary
+
+
+class PlacementEstimator:
+    """``compose``'s estimator: the lighting at a placement estimated from the reconstructed
+    scene (``estimate_light``, outdoor label); keeps the last position and estimate."""
+
+    def __init__(self, scene_ply: str, backend):
+        self.scene_ply, self.backend = scene_ply, backend
+        self.position: np.ndarray | None = None
+        self.estimate: dict | None = None
+
+    def __call__(self, pos, name) -> np.ndarray:
+        self.position = np.asarray(pos, np.float64)
+        self.estimate = estimate_light(self.scene_ply, pos, EstimateConfig(label="outdoor"),
+                                       self.backend)
+        return self.estimate["hdr"]
+
+
+def _ground_truth(cfg: DemoConfig, out: Path) -> tuple[Path, Path]:
+    """The procedural inputs in ``inputs/`` and the path-traced composition dataset in
+    ``dataset/``; returns (the dataset folder, the studio map)."""
+    mesh = procedural.procedural_object_yup(out / "inputs" / f"{OBJECT}.ply")
+    sky = procedural.procedural_sky(out / "inputs" / "sky.exr",
+                                    sun_elevation_deg=cfg.sun_elevation_deg,
+                                    sun_radius_deg=cfg.sun_radius_deg)
+    studio = procedural.procedural_studio(out / "inputs" / "studio.exr")
+    ds = out / "dataset"
+    make_composition_dataset(CompositionDatasetConfig(
+        out_dir=ds, objects=(str(mesh),), scene_map=sky, object_map=studio,
+        resolution=cfg.resolution, comp_resolution=cfg.comp_resolution,
+        scene_views=cfg.scene_views,
+        object_views=cfg.object_views, test_views=cfg.test_views, spp=cfg.spp,
+        sfm_points=cfg.sfm_points, seed=cfg.seed, path_material=OBJECT_MATERIAL,
+        scene_elevation_deg=cfg.scene_elevation_deg, sky_views=cfg.sky_views,
+        sky_pitch_deg=cfg.sky_pitch_deg,
+        scene_envmap_scale=cfg.scene_exposure),
+        progress=cfg.progress)
+    return ds, studio
+
+
+def _scene_step1(cfg: DemoConfig, ds: Path, scene_run: Path) -> dict:
+    write_run_info(scene_run, ds / "scene", "scene", 1, False)
+    return train_radiance(load_dataset(ds / "scene"), scene_run, RadianceConfig.from_preset(
+        "scene", iterations=cfg.scene_iterations, eval_every=max(cfg.scene_iterations // 8, 1),
+        eval_views=4, seed=cfg.seed, background=cfg.scene_background,
+        env_resolution=cfg.scene_env_resolution), progress=cfg.progress)
+
+
+def _object_step1(cfg: DemoConfig, ds: Path, obj_run: Path) -> dict:
+    write_run_info(obj_run, ds / "objects" / OBJECT, "object", 1, False)
+    return train_radiance(load_dataset(ds / "objects" / OBJECT), obj_run,
+                          RadianceConfig.from_preset(
+                              "object", iterations=cfg.object_iterations,
+                              eval_every=max(cfg.object_iterations // 8, 1), eval_views=4,
+                              seed=cfg.seed), progress=cfg.progress)
+
+
+def _object_step2(cfg: DemoConfig, obj_run: Path, studio: Path) -> dict:
+    return train_material(obj_run, None, MaterialConfig(
+        iterations=cfg.material_iterations, probe_count=cfg.probes, rays=min(cfg.rays, 64),
+        eval_every=max(cfg.material_iterations // 6, 1), eval_views=4,
+        env_file=str(studio) if cfg.object_light == "known" else None), progress=cfg.progress)
+
+
+def _compose(cfg: DemoConfig, ds: Path, scene_run: Path, obj_run: Path, comp: Path,
+             estimator: PlacementEstimator) -> dict:
+    """``compose`` (fast preset, ``shadow_probes`` occlusion probes) into ``comp``."""
+    ccfg = COMPOSE_PRESETS["fast"]
+    ccfg = dataclasses.replace(ccfg, shadow=dataclasses.replace(ccfg.shadow,
+                                                                count=cfg.shadow_probes))
+    return compose(scene_run, {OBJECT: obj_run}, ds / "transform.json", comp,
+                   estimator=estimator, cfg=ccfg, progress=cfg.progress)
+
+
+def _render_composition(cfg: DemoConfig, ds: Path, comp: Path) -> dict:
+    """{variant: render_comp's scores} of every variant against the path-traced composites."""
+    scores = {}
+    for v in VARIANTS:
+        scores[v] = render_comp(comp, ds / "comp" / "transforms_test.json", v,
+                                ds / "comp" / "gt", rays=cfg.rays, seed=cfg.seed,
+                                progress=cfg.progress)
+    return scores
+
+
+def _figures_and_light_error(cfg: DemoConfig, out: Path, ds: Path, comp: Path, scores: dict,
+                             names: list, estimator: PlacementEstimator, meta: dict) -> dict:
+    """comparison.png, crops.png / shadow_profile.png, envmaps.png, and the lighting error
+    at the placement: against the true light arriving there (the scene without the object,
+    path-traced from the placement) and against the scene's map, which ignores the scene's
+    shadows and ground."""
+    renders = {v: comp / "renders" / v for v in VARIANTS}
+    comparison_figure(ds / "comp" / "gt", renders, names, scores).save(out / "comparison.png")
+    region_figures(ds / "comp", renders, names, out)
+    est = estimator.estimate["hdr"]
+    true_eq = placement_probe.render_probe(placement_probe.empty_scene(ds),
+                                           estimator.position, cfg.probe_height, 8)
+    envmap_figure(true_eq, est).save(out / "envmaps.png")
+    light_err = lighting_metrics.compare_maps(est, true_eq)
+    map_eq = envmap.read_envmap_file(meta["scene"]["envmap"])[0] * meta["scene"]["envmap_scale"]
+    return {"lighting": light_err, "lighting_vs_map": lighting_metrics.compare_maps(est, map_eq)}
+
+
+def _composition_scores(scores: dict, names: list) -> dict:
+    """The summary's composition part: each variant's PSNR/SSIM/time, its scores in the
+    object's region, and on how many frames SOP beats the naive paste."""
+    sop, paste = scores["sop"]["per_frame"], scores["paste"]["per_frame"]
+    return {
+        "composition": {v: {"psnr": scores[v]["psnr"], "ssim": scores[v]["ssim"],
+                            "frame_seconds": scores[v]["frame_seconds"]} for v in VARIANTS},
+        "sop_beats_paste_frames": int(sum(a["psnr"] > b["psnr"] for a, b in zip(sop, paste))),
+        "frames": len(names),
+        "region": {v: scores[v].get("region") for v in VARIANTS},
+        "sop_beats_paste_frames_region": int(sum(
+            a.get("psnr_region", -np.inf) > b.get("psnr_region", np.inf)
+            for a, b in zip(sop, paste))),
+    }

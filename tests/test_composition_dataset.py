@@ -223,8 +223,8 @@ def test_cli_path_objects_and_summary(tmp_path, capsys):
     (["--test-views", "0"], "test_views must be >= 1"),
     (["--spp", "-2"], "spp must be >= 1"),
     (["--points", "-1"], "sfm_points must be >= 0"),
-    (["--probe-height", "-1"], "--probe-height must be in [0, 4096]"),
-    (["--probe-height", "5000"], "--probe-height must be in [0, 4096]"),
+    (["--probe-height", "-1"], "probe_height must be in [0, 4096]"),
+    (["--probe-height", "5000"], "probe_height must be in [0, 4096]"),
 ])
 def test_bad_flags_are_clear_errors(tmp_path, capsys, flags, message):
     out = tmp_path / "o"

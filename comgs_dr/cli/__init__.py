@@ -1,17 +1,29 @@
-"""The ``comgs`` command line.
+"""The ``comgs`` command line. ``comgs COMMAND --help`` lists a command's flags.
 
-Each subcommand has a parser builder ``_add_<name>(subparsers)`` in one of the modules of
-this package (``datasets``, ``objects``, ``lighting``, ``composition``; listed in
-``_SUBCOMMANDS``) that sets ``func=_cmd_<name>``; ``_cmd_<name>(args)`` returns an exit
-code.
+Commands (``_SUBCOMMANDS``, in this order; tests/test_config_cli.py checks this list
+against the parser):
 
-    comgs make-dataset object --mesh M --envmap E --out DIR [--views N] [--test-views N]
-                              [--res R] [--spp S] [--relight MAP ...] [--seed S] [--variant V]
-                              [--sfm-points N]
-    comgs make-dataset scene --out DIR [--views 60] [--res 96] [--points 20000]
-    comgs estimate-light SCENE.ply --at X Y Z --out ENV.exr [--label L] [--width W]
-                              [--height H] [--exclude-radius R] [--backend B] [--weights PATH]
-                              [--diffusers-dir DIR]
+    make-dataset       render synthetic ground truth: object, scene, llff, composition
+    demo               the whole pipeline on embedded procedural inputs
+    report             one self-contained HTML report of a run folder
+    reconstruct        step 1: surfel radiance and geometry from images
+    render             render a reconstruction run and write metrics
+    export-mesh        a triangle mesh of a reconstruction
+    decompose          step 2: materials, env map and SOPs from a step-1 run
+    relight            render a step-2 run under a new environment map
+    estimate-light     an HDR environment map at a placement in a surfel scene
+    compare-light      score an estimated map against the true light
+    train-completion   train the panorama completion network
+    train-light-head   train the light head (power of clipped lights)
+    train-scene-label  train the indoor/outdoor classifier
+    compose            place objects in a scene, light them, cache occlusion
+    render-comp        render a composition along cameras or a dataset's test views
+
+Each command has a parser builder ``_add_<name>(subparsers)`` in one of the modules of this
+package (``datasets``, ``objects``, ``lighting``, ``composition``) that sets
+``func=_cmd_<name>``; ``_cmd_<name>(args)`` returns an exit code. Flags come from each
+command's config dataclass (``core.config``, ``cli._flags``); ``--out``,
+``--mitsuba-variant`` and ``--quiet`` from ``core.config.shared_options``.
 """
 from __future__ import annotations
 

@@ -58,25 +58,35 @@ PATH_OBJECT = {"texture": "auto", "base_color": (0.6, 0.6, 0.6), "roughness": 0.
 GROUND_HALF = 25.0           # ground: a 50 x 50 square, top at z = 0
 GROUND_TILE = 2.0            # one texture tile per 2 x 2 units
 MESH_SUFFIXES = (".obj", ".ply")
+PROBE_MAX_HEIGHT = 4096      # rows of a placement probe (= data.placement_probe.MAX_HEIGHT)
 
 
 @dataclass
 class CompositionDatasetConfig:
     """Settings of :func:`make_composition_dataset` (defaults: a few minutes on 2 CPU cores).
 
-    ``objects``: names of :data:`SHARED_OBJECTS` or .obj/.ply paths (Y-up files). Maps: names
-    of shared HDRIs (``hdri/<name>``) or paths. ``test_views`` sizes the test split of the
-    scene, of each object and of ``comp/``. Training views use ``spp``, test views and
-    composites ``spp_test`` (None: 2 * spp). ``object_scale``: world half size of each placed
-    object's largest side; ``spacing``: centre distance of neighbours in object sizes.
+    ``objects``: names of :data:`SHARED_OBJECTS` or .obj/.ply paths (Y-up files), or one
+    comma-separated string of them. Maps: names of shared HDRIs (``hdri/<name>``) or paths.
+    ``resolution``: side of the captures in pixels; ``comp_resolution``: of the composites
+    (None: ``resolution``; the evaluation may look closer than the captures). ``test_views``
+    sizes the test split of the scene, of each object and of ``comp/``. Training views use
+    ``spp`` samples per pixel, test views and composites ``spp_test`` (None: 2 * spp).
+    ``object_scale``: world half size of each placed object's largest side; ``spacing``:
+    centre distance of neighbours in object sizes. Angles in degrees, lengths in scene units
+    (the ground is ``2 * ground_half`` wide).
+
+    ``probe_height``: rows of ``probes/<object>.exr``, the true light at the centre of each
+    object's box, which ``comgs make-dataset composition`` path-traces after the dataset
+    (``data.placement_probe.write_probes``; this function writes none); 0: none.
+
+    Example: ``CompositionDatasetConfig(out_dir="comp", objects="spot,teapot", resolution=64)``.
     """
     out_dir: str | Path = "composition"
     objects: tuple[str, ...] = ("spot", "teapot")
     scene_map: str | Path = "blender_sunrise.exr"
     object_map: str | Path = "blender_studio.exr"
     resolution: int = 96
-    comp_resolution: int | None = None   # the composites' side (None: ``resolution``): the
-                                         # evaluation may look closer than the captures
+    comp_resolution: int | None = None
     scene_views: int = 64
     object_views: int = 48
     test_views: int = 8
@@ -107,6 +117,7 @@ class CompositionDatasetConfig:
     #: ``sky_pitch_deg``), so the capture sees the sun whenever it is low enough; otherwise
     #: the stratified random azimuths can miss a low sun altogether
     sun_view: bool = False
+    probe_height: int = 128
 
     def __post_init__(self):
         if isinstance(self.objects, str):
@@ -135,6 +146,9 @@ class CompositionDatasetConfig:
                              f"(allowed: {', '.join(PATH_OBJECT)})")
         if not 1.0 < float(self.fov_deg) < 120.0:
             raise ValueError(f"CompositionDatasetConfig.fov_deg must be in (1, 120) (got {self.fov_deg})")
+        if not 0 <= int(self.probe_height) <= PROBE_MAX_HEIGHT:
+            raise ValueError(f"CompositionDatasetConfig.probe_height must be in "
+                             f"[0, {PROBE_MAX_HEIGHT}], got {self.probe_height}")
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -342,6 +356,55 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
     """
     t0 = time.perf_counter()
     cfg = dataclasses.replace(cfg)                       # re-validates
+    src = _inputs(cfg)
+    out, spp_test = Path(cfg.out_dir), int(cfg.spp_test or 2 * cfg.spp)
+    rng = np.random.default_rng(cfg.seed)
+    geo = _arrangement(cfg, src, rng)
+    textures = write_textures(out / "assets")
+    seconds = {}
+    t = time.perf_counter()
+    empty = _render_scene(cfg, src, geo, textures, rng, out, spp_test, progress)
+    seconds["scene"] = time.perf_counter() - t
+    seconds["objects"] = _render_objects(cfg, src, out, spp_test, progress)
+    write_placements(out / "transform.json", geo.placements)
+    t = time.perf_counter()
+    specs, ccfg = _render_composites(cfg, src, geo, textures, empty, out, spp_test, progress)
+    seconds["comp"] = time.perf_counter() - t
+    seconds["total"] = time.perf_counter() - t0
+    meta = _metadata(cfg, ccfg, src, geo, specs, spp_test, seconds)
+    (out / "composition.json").write_text(json.dumps(meta, indent=2))
+    return {"out_dir": str(out), "objects": list(src.objects), "n_scene_train": cfg.scene_views + cfg.sky_views,
+            "n_test": cfg.test_views, "n_object_train": cfg.object_views,
+            "resolution": cfg.resolution, "comp_resolution": ccfg.resolution, "seconds": seconds,
+            "variant": src.variant}
+
+
+@dataclass
+class _Inputs:
+    """The checked inputs: map files, the scene map loaded, the objects' specs, the variant."""
+    scene_map: Path
+    object_map: Path
+    objects: dict                   # resolve_objects; object_to_world and texture filled later
+    variant: str
+    env: object                     # the scene map as an mi.Bitmap
+
+
+@dataclass
+class _Arrangement:
+    """Where everything stands: the sun, the objects' placements and boxes, camera radii and
+    the scene's shapes (all in the scene world, Z-up)."""
+    sun: np.ndarray                 # [3] unit direction of the brightest texel
+    az: float                       # its azimuth in degrees (0 when it is at the zenith)
+    placements: dict                # {name: Similarity} capture world -> scene world
+    bbox: dict                      # {name: ([3] min, [3] max)} placed object's world box
+    centre: np.ndarray              # [3] centre of the objects' joint box
+    comp_radius: float              # distance of the composite cameras from the centre
+    scene_radius: float             # distance of the scene capture's cameras from the origin
+    layout: dict                    # scene_layout: ground, wall, box
+
+
+def _inputs(cfg: CompositionDatasetConfig) -> _Inputs:
+    """Resolve and load maps and meshes (errors before anything is written)."""
     scene_map, object_map = resolve_map(cfg.scene_map), resolve_map(cfg.object_map)
     objects = resolve_objects(cfg.objects, cfg.path_material)
     variant = sio.activate_variant(cfg.variant)
@@ -349,59 +412,65 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
     with warnings.catch_warnings():                      # validate before rendering;
         warnings.simplefilter("ignore")                  # the object run warns itself
         load_envmap(object_map)
-    out, spp_test = Path(cfg.out_dir), int(cfg.spp_test or 2 * cfg.spp)
-    rng = np.random.default_rng(cfg.seed)
-    sun = sun_direction(env)
+    return _Inputs(scene_map, object_map, objects, variant, env)
+
+
+def _arrangement(cfg: CompositionDatasetConfig, src: _Inputs, rng) -> _Arrangement:
+    """Place the objects near the origin in line with the sun (each object's
+    ``object_to_world`` is filled in ``src.objects``), and size the camera rings so the
+    composites frame the group and the scene capture sees around it."""
+    sun = sun_direction(src.env)
     az = float(np.degrees(np.arctan2(sun[1], sun[0]))) if np.hypot(*sun[:2]) > 1e-6 else 0.0
     norm = {}                                            # {name: [N, 3] capture-frame vertices}
-    for name, o in objects.items():
+    for name, o in src.objects.items():
         v = sio.load_mesh(o["mesh"])["vertices"]
         o["object_to_world"], _ = syn.object_transform(v, "y", 1.0)
         norm[name] = v @ o["object_to_world"][:3, :3].T + o["object_to_world"][:3, 3]
     placements = place_objects(norm, az, cfg.object_scale, cfg.spacing, rng)
-    bbox = {n: (lambda w: (w.min(0), w.max(0)))(placements[n].points(norm[n])) for n in objects}
+    bbox = {n: (lambda w: (w.min(0), w.max(0)))(placements[n].points(norm[n])) for n in src.objects}
     centre = (np.min([b[0] for b in bbox.values()], 0) + np.max([b[1] for b in bbox.values()], 0)) / 2
     group_r = max(np.linalg.norm(p.translation[:2]) for p in placements.values()) \
         + np.sqrt(2) * cfg.object_scale                  # horizontal radius of the group
     comp_radius = float(1.1 * group_r / np.sin(np.radians(cfg.fov_deg) / 2))
     scene_radius = 1.25 * comp_radius
     layout = scene_layout(az, group_r, float(cfg.ground_half))
-    textures = write_textures(out / "assets")
-    seconds = {}
+    return _Arrangement(sun, az, placements, bbox, centre, comp_radius, scene_radius, layout)
 
-    def seed(i: int, kind: int) -> int:   # kind 0 scene train, 1 scene test, 2 composite
-        return (int(cfg.seed) * 1_000_003 + 256 * i + kind) % 2**32
 
-    # 1. the scene without objects
-    t = time.perf_counter()
-    cams = {"train": syn.train_cameras(cfg.scene_views, scene_radius, rng,
+def _render_scene(cfg, src: _Inputs, geo: _Arrangement, textures: dict, rng, out: Path,
+                  spp_test: int, progress: bool) -> "SceneRenderer":
+    """``scene/``: the capture of the scene without the objects (orbit views, optional sky
+    views, test views, SfM points); returns its renderer for the empty composites."""
+    aim = (geo.az, float(np.degrees(np.arcsin(np.clip(geo.sun[2], -1, 1))))) if cfg.sun_view else None
+    cams = {"train": syn.train_cameras(cfg.scene_views, geo.scene_radius, rng,
                                        tuple(cfg.scene_elevation_deg))
-            + sky_cameras(cfg.sky_views, scene_radius, rng, tuple(cfg.sky_pitch_deg),
-                          aim_deg=(az, float(np.degrees(np.arcsin(np.clip(sun[2], -1, 1)))))
-                          if cfg.sun_view else None),
-            "test": syn.test_cameras(cfg.test_views, scene_radius, (35.0, 55.0))}
-    empty = SceneRenderer(scene_dict(cfg, env, textures, layout))
+            + sky_cameras(cfg.sky_views, geo.scene_radius, rng, tuple(cfg.sky_pitch_deg), aim_deg=aim),
+            "test": syn.test_cameras(cfg.test_views, geo.scene_radius, (35.0, 55.0))}
+    empty = SceneRenderer(scene_dict(cfg, src.env, textures, geo.layout))
     images = []
     for split, spp in (("train", cfg.spp), ("test", spp_test)):
         (out / "scene" / split).mkdir(parents=True, exist_ok=True)
         for i, cam in enumerate(syn._bar(cams[split], f"scene {split}", progress)):
-            rgba = empty.radiance(cam["to_world_mitsuba"], spp, seed(i, split == "test"))
+            rgba = empty.radiance(cam["to_world_mitsuba"], spp, syn.render_seed(cfg.seed, i, split == "test"))
             images += [rgba] if split == "train" else []
             cam["file_path"] = f"./{split}/r_{i}"
             write_opaque(out / "scene" / split / f"r_{i}", rgba)
     if cfg.sfm_points:
         pts, cols = sample_visible_points(empty.scene, cams["train"], images, cfg.fov_deg,
                                           int(cfg.sfm_points), np.random.default_rng(cfg.seed + 17),
-                                          radius=scene_radius)
+                                          radius=geo.scene_radius)
         write_points_ply(out / "scene" / "points3d.ply", pts, cols)
     _write_transforms(out / "scene", cfg, cams)
-    seconds["scene"] = time.perf_counter() - t
+    return empty
 
-    # 2. each object alone under the object map
-    seconds["objects"] = {}
-    for k, (name, o) in enumerate(objects.items()):
+
+def _render_objects(cfg, src: _Inputs, out: Path, spp_test: int, progress: bool) -> dict:
+    """``objects/<name>/``: each object alone under the object map (``make_object_dataset``);
+    fills each object's texture from its meta.json; returns {name: seconds}."""
+    seconds = {}
+    for k, (name, o) in enumerate(src.objects.items()):
         s = syn.make_object_dataset(syn.ObjectDatasetConfig(
-            mesh=o["mesh"], envmap=object_map, out_dir=out / "objects" / name,
+            mesh=o["mesh"], envmap=src.object_map, out_dir=out / "objects" / name,
             n_train=cfg.object_views, n_test=cfg.test_views, resolution=cfg.resolution,
             spp=cfg.spp, spp_test=spp_test, max_depth=cfg.max_depth, relight_envmaps=(),
             envmap_scale=cfg.object_envmap_scale, seed=cfg.seed + 1 + k, fov_deg=cfg.fov_deg,
@@ -409,77 +478,72 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
             roughness=o["roughness"], metallic=o["metallic"]), progress=progress)
         meta = json.loads((out / "objects" / name / "meta.json").read_text())
         assert np.allclose(meta["object"]["object_to_world"], o["object_to_world"])
-        o["texture"], seconds["objects"][name] = meta["texture"], s["seconds"]
-    write_placements(out / "transform.json", placements)
+        o["texture"], seconds[name] = meta["texture"], s["seconds"]
+    return seconds
 
-    # 3. composites: the same scene with the placed objects, and without
-    t = time.perf_counter()
+
+def _render_composites(cfg, src: _Inputs, geo: _Arrangement, textures: dict,
+                       empty: "SceneRenderer", out: Path, spp_test: int, progress: bool):
+    """``comp/``: spiral views of the scene with the placed objects (gt), without them (empty;
+    same sampler seed) and the objects' coverage (mask). Returns (the placed objects'
+    SceneSpecs, the config at the composites' resolution)."""
     specs = {name: sio.SceneSpec(
-        mesh=o["mesh"], object_to_world=placements[name].matrix @ o["object_to_world"],
+        mesh=o["mesh"], object_to_world=geo.placements[name].matrix @ o["object_to_world"],
         texture=Path(o["texture"]) if o["texture"] else None, base_color=o["base_color"],
         roughness=o["roughness"], metallic=o["metallic"], resolution=cfg.resolution,
         fov_deg=cfg.fov_deg, max_depth=cfg.max_depth, envmap_to_world=syn.ENVMAP_TO_WORLD)
-        for name, o in objects.items()}
-    comp_cams = spiral_cameras(cfg.test_views, centre, comp_radius,
-                               azimuth0_deg=az + 90.0)
+        for name, o in src.objects.items()}
+    comp_cams = spiral_cameras(cfg.test_views, geo.centre, geo.comp_radius,
+                               azimuth0_deg=geo.az + 90.0)
     ccfg = dataclasses.replace(cfg, resolution=cfg.comp_resolution or cfg.resolution)
-    full = SceneRenderer(scene_dict(ccfg, env, textures, layout, specs))
+    full = SceneRenderer(scene_dict(ccfg, src.env, textures, geo.layout, specs))
     empty_c = empty if ccfg.resolution == cfg.resolution else \
-        SceneRenderer(scene_dict(ccfg, env, textures, layout))
+        SceneRenderer(scene_dict(ccfg, src.env, textures, geo.layout))
     for sub in ("gt", "empty", "mask"):
         (out / "comp" / sub).mkdir(parents=True, exist_ok=True)
     for i, cam in enumerate(syn._bar(comp_cams, "composites", progress)):
         base = f"r_{i:03d}"
         for r, sub in ((full, "gt"), (empty_c, "empty")):
             write_opaque(out / "comp" / sub / base,
-                         r.radiance(cam["to_world_mitsuba"], spp_test, seed(i, 2)), exr=True)
+                         r.radiance(cam["to_world_mitsuba"], spp_test, syn.render_seed(cfg.seed, i, 2)),
+                         exr=True)
         write_png8(out / "comp" / "mask" / f"{base}.png", full.coverage(cam["to_world_mitsuba"]))
         cam.update(file_path=f"./gt/{base}", empty_path=f"./empty/{base}",
                    mask_path=f"./mask/{base}.png", radiance_path=f"./gt/{base}.exr",
                    empty_radiance_path=f"./empty/{base}.exr")
     _write_transforms(out / "comp", ccfg, {"test": comp_cams})
-    seconds["comp"] = time.perf_counter() - t
-    seconds["total"] = time.perf_counter() - t0
+    return specs, ccfg
 
-    obj_meta = {n: {"dir": f"objects/{n}", "mesh": str(Path(o["mesh"]).resolve()),
-                    "envmap": str(object_map.resolve()), "envmap_scale": cfg.object_envmap_scale,
-                    "material": {"bsdf": "twosided principled", "texture": o["texture"],
-                                 "base_color": "texture" if o["texture"] else list(o["base_color"]),
-                                 "roughness": o["roughness"], "metallic": o["metallic"],
-                                 "specular": 0.5},
-                    "object_to_world": o["object_to_world"].tolist(),
-                    "placement": placements[n].matrix.tolist(),
-                    "mesh_to_world": specs[n].object_to_world.tolist(),
-                    "scale": placements[n].scale, "rotation_z_deg": float(np.degrees(np.arctan2(
-                        placements[n].rotation[1, 0], placements[n].rotation[0, 0]))),
-                    "bbox_world": [bbox[n][0].tolist(), bbox[n][1].tolist()]}
-                for n, o in objects.items()}
+
+def _metadata(cfg, ccfg, src: _Inputs, geo: _Arrangement, specs: dict, spp_test: int,
+              seconds: dict) -> dict:
+    """``composition.json``: what was rendered, in which frame and colour space."""
     shapes = {k: {**sh, "to_world": sh["to_world"].tolist(), "texture": sh.get("texture") and
-                  f"assets/{sh['texture']}.png"} for k, sh in layout.items()}
+                  f"assets/{sh['texture']}.png"} for k, sh in geo.layout.items()}
     shapes["ground"].update(half_size=float(cfg.ground_half), top_z=0.0)
-    meta = {
+    return {
         "generator": GENERATOR_VERSION, "comgs_dr_version": package_version(),
-        "mitsuba_version": mi.__version__, "variant": variant,
+        "mitsuba_version": mi.__version__, "variant": src.variant,
         "world": "Z-up; ground top at z = 0; scene/, comp/ and transform.json share this frame",
         "envmap_orientation": {
             "to_world_mitsuba": syn.ENVMAP_TO_WORLD.tolist(),
             "mapping": "world dir d -> u = 0.5 - atan2(d_y, d_x)/(2 pi), v = acos(d_z)/pi (v=0 "
                        "top row; Blender's Z-up equirect, as make-dataset object; all maps)"},
-        "scene": {"dir": "scene", "envmap": str(scene_map.resolve()),
-                  "envmap_scale": cfg.scene_envmap_scale, "sun_direction": sun.tolist(),
+        "scene": {"dir": "scene", "envmap": str(src.scene_map.resolve()),
+                  "envmap_scale": cfg.scene_envmap_scale, "sun_direction": geo.sun.tolist(),
                   "n_train": cfg.scene_views + cfg.sky_views, "sky_views": cfg.sky_views,
                   "sun_view": bool(cfg.sun_view),
                   "n_test": cfg.test_views,
-                  "sfm_points": int(cfg.sfm_points), "camera_radius": scene_radius,
+                  "sfm_points": int(cfg.sfm_points), "camera_radius": geo.scene_radius,
                   "shapes": shapes, "bsdf": "twosided principled (specular 0.5, metallic 0); "
                   "rectangle [-1,1]^2 (normal +Z), cube [-1,1]^3, mapped by to_world"},
-        "objects": obj_meta,
+        "objects": _objects_metadata(cfg, src, geo, specs),
         "transforms": "transform.json maps an object's capture world (objects/<name>: the mesh "
                       "normalised by object_to_world) to the scene world; a placed mesh file's "
                       "to_world = placement @ object_to_world (= mesh_to_world)",
-        "comp": {"dir": "comp", "n_test": cfg.test_views, "centre": centre.tolist(),
+        "comp": {"dir": "comp", "n_test": cfg.test_views, "centre": geo.centre.tolist(),
                  "resolution": [ccfg.resolution, ccfg.resolution],
-                 "camera_radius": comp_radius, "cameras": "spiral: elevation 30 -> 60 deg, one "
+                 "camera_radius": geo.comp_radius, "cameras": "spiral: elevation 30 -> 60 deg, one "
                  "turn, looking at centre", "noise": "gt and empty of a frame share the seed"},
         "render": {"integrator": "path", "max_depth": cfg.max_depth, "fov_deg": cfg.fov_deg,
                    "resolution": [cfg.resolution, cfg.resolution], "spp_train": cfg.spp,
@@ -493,11 +557,26 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
                             "to_world_mitsuba = transform_matrix @ diag(-1,1,-1,1)",
         "seconds": {k: ({n: round(x, 2) for n, x in v.items()} if isinstance(v, dict)
                         else round(v, 2)) for k, v in seconds.items()}}
-    (out / "composition.json").write_text(json.dumps(meta, indent=2))
-    return {"out_dir": str(out), "objects": list(objects), "n_scene_train": cfg.scene_views + cfg.sky_views,
-            "n_test": cfg.test_views, "n_object_train": cfg.object_views,
-            "resolution": cfg.resolution, "comp_resolution": ccfg.resolution, "seconds": seconds,
-            "variant": variant}
+
+
+def _objects_metadata(cfg, src: _Inputs, geo: _Arrangement, specs: dict) -> dict:
+    """{name: files, material, capture frame, placement and world box} of each object."""
+    out = {}
+    for n, o in src.objects.items():
+        pl = geo.placements[n]
+        out[n] = {"dir": f"objects/{n}", "mesh": str(Path(o["mesh"]).resolve()),
+                  "envmap": str(src.object_map.resolve()), "envmap_scale": cfg.object_envmap_scale,
+                  "material": {"bsdf": "twosided principled", "texture": o["texture"],
+                               "base_color": "texture" if o["texture"] else list(o["base_color"]),
+                               "roughness": o["roughness"], "metallic": o["metallic"],
+                               "specular": 0.5},
+                  "object_to_world": o["object_to_world"].tolist(),
+                  "placement": pl.matrix.tolist(),
+                  "mesh_to_world": specs[n].object_to_world.tolist(),
+                  "scale": pl.scale, "rotation_z_deg": float(np.degrees(np.arctan2(
+                      pl.rotation[1, 0], pl.rotation[0, 0]))),
+                  "bbox_world": [geo.bbox[n][0].tolist(), geo.bbox[n][1].tolist()]}
+    return out
 
 
 def _write_transforms(folder: Path, cfg, cams: dict) -> None:

@@ -58,8 +58,20 @@ GENERATOR_VERSION = "comgs_dr.data.llff_synthetic/2"     # 2: envmap, probe
 
 @dataclass
 class LLFFDatasetConfig:
-    """Settings of :func:`make_llff_dataset` (defaults: the issue's capture at ``-r 8``)."""
-    out_dir: str | Path
+    """Settings of :func:`make_llff_dataset` (defaults: a 4 x 5 capture whose ``images_8/``
+    is what ``comgs reconstruct DIR --scene -r 8`` trains on).
+
+    Sizes in pixels, angles in degrees, positions in world units. ``spp``: samples per
+    full-resolution pixel (k² per pixel of ``images_<k>/``). ``envmap``: an equirect map that
+    lights the scene instead of the constant sky and the sun (and is its sky), exposed by
+    ``envmap_scale`` (None: ``pano_data.auto_exposure``: the sky in range, a sun clipped).
+    ``envmap_scale``, ``envmap_rotate_deg`` and ``probe_height`` need it: the default sun is
+    a directional light, which no ray can hit.
+
+    Example: ``LLFFDatasetConfig(out_dir="ff", rows=1, cols=3, width=64, height=48,
+    downscales=(2,))``.
+    """
+    out_dir: str | Path = "llff_synthetic"
     rows: int = 4
     cols: int = 5                         # rows x cols views (LLFF hold-out: every 8th is test)
     width: int = 800                      # images/ size; images_8/ is 100 x 75
@@ -78,8 +90,48 @@ class LLFFDatasetConfig:
     envmap_scale: float | None = None     # None: pano_data.auto_exposure (sky in range)
     envmap_rotate_deg: float = 0.0        # the map turned about +Z (the views look along +Y)
     backdrop: bool = True                 # False: no wall, the views see the map's horizon
-    pitch_deg: float = 0.0                # the cameras look up by this much (more sky)
+    pitch_deg: float = 0.0                # the cameras look up by this much (more sky); the
+                                          # LLFF loader takes the mean camera up as +Z, so
+                                          # the reconstruction's frame tilts by about as much
     probe_height: int = 0                 # > 0: probes/center.exr, the true light at PLACEMENT
+                                          # (rows, at most 1024)
+
+    def __post_init__(self):
+        """Sizes, ranges and the settings that need a map, before anything is written (the
+        messages name the ``make-dataset llff`` flags)."""
+        for flag, v, lo in (("--rows", self.rows, 1), ("--cols", self.cols, 1),
+                            ("--width", self.width, 8), ("--height", self.height, 8),
+                            ("--spp", self.spp, 1)):
+            if v < lo:
+                raise ValueError(f"make-dataset llff: {flag} must be >= {lo}, got {v}")
+        if self.rows * self.cols < 2:
+            raise ValueError("make-dataset llff: need at least 2 views (--rows x --cols)")
+        for flag, given in (("--envmap-scale", self.envmap_scale is not None),
+                            ("--envmap-rotate", self.envmap_rotate_deg != 0.0),
+                            ("--probe-height", self.probe_height > 0)):
+            if given and self.envmap is None:
+                raise ValueError(f"make-dataset llff: {flag} needs --envmap")
+        if self.envmap_scale is not None and not 0 < self.envmap_scale < float("inf"):
+            raise ValueError(f"make-dataset llff: --envmap-scale must be > 0, got {self.envmap_scale}")
+        if not -60.0 <= self.pitch_deg <= 60.0:
+            raise ValueError(f"make-dataset llff: --pitch must lie in [-60, 60] degrees, got "
+                             f"{self.pitch_deg}")
+        if not 0 <= self.probe_height <= 1024:
+            raise ValueError(f"make-dataset llff: --probe-height must lie in [0, 1024], got "
+                             f"{self.probe_height}")
+        self._check_downscales()
+
+    def _check_downscales(self) -> None:
+        """Each ``images_<k>/`` divides the images exactly and keeps them at >= 8 px."""
+        w, h, ks = self.width, self.height, self.downscales
+        if any(k < 1 or w % k or h % k for k in ks):
+            raise ValueError(f"make-dataset llff: each --downscale must be >= 1 and divide "
+                             f"{w}x{h}, got {list(ks)}")
+        small = [k for k in ks if min(w, h) // k < 8]
+        if small:
+            raise ValueError(f"make-dataset llff: --downscale {small[0]} makes "
+                             f"{w // small[0]}x{h // small[0]} images (under 8 "
+                             f"px); give a smaller --downscale (the default is 8)")
 
 
 #: Where a composited object would sit: on the floor between the sphere, the box and the card
@@ -248,14 +300,7 @@ def make_llff_dataset(cfg: LLFFDatasetConfig, progress: bool = False) -> dict:
     """
     activate_variant(cfg.variant)
     t0 = time.perf_counter()
-    env, scale = None, 1.0
-    if cfg.envmap is not None:                            # checked before any folder is made
-        env = load_envmap(cfg.envmap)                     # validated (finite, 2:1, readable)
-        scale = (float(cfg.envmap_scale) if cfg.envmap_scale is not None else
-                 auto_exposure(read_envmap_file(cfg.envmap)[0].astype(np.float64)))
-    elif cfg.probe_height > 0:
-        raise ValueError("make_llff_dataset: probe_height needs an envmap (the default sun is a "
-                         "directional light, which the probe's rays cannot hit)")
+    env, scale = _lighting(cfg)                            # checked before any folder is made
     out = Path(cfg.out_dir)
     (out / "images").mkdir(parents=True, exist_ok=True)
     for k in cfg.downscales:
@@ -263,28 +308,14 @@ def make_llff_dataset(cfg: LLFFDatasetConfig, progress: bool = False) -> dict:
     rng = np.random.default_rng(cfg.seed)
     scene = mi.load_dict(scene_dict(procedural_textures(rng), env, scale, cfg.backdrop,
                                     cfg.max_depth, cfg.envmap_rotate_deg))
-    integrator = scene.integrator()
-    focal = 0.5 * cfg.width / np.tan(np.radians(cfg.fov_x_deg) / 2)
     rows, names = [], []
     poses = grid_cameras(cfg, rng)
     for i, m in enumerate(poses):
-        cam = Camera(m, cfg.width, cfg.height, cfg.fov_x_deg)
-        z = z_depths(scene, cam)
-        zf = z[np.isfinite(z)]
-        if zf.size == 0:
-            raise RuntimeError(f"view {i} sees nothing of the scene")
-        near, far = np.percentile(zf, 0.1), np.percentile(zf, 99.9)
-        img = mi.render(scene, sensor=mi.load_dict(cam.sensor_dict(spp=cfg.spp)),
-                        integrator=integrator, spp=cfg.spp, seed=cfg.seed * 1000 + i)
-        srgb = np.clip(srgb_encode(np.clip(np.asarray(img, np.float64)[..., :3], 0, None)), 0, 1)
-        name = f"image{i:03d}.png"
-        write_png8(out / "images" / name, srgb)
-        for k in cfg.downscales:
-            write_png8(out / f"images_{k}" / name, downscale(srgb.astype(np.float32), k))
-        rows.append(llff_row(m, cfg.width, cfg.height, focal, near, far))
-        names.append(name)
+        rows.append(_write_view(scene, cfg, i, m, out))
+        names.append(f"image{i:03d}.png")
         if progress:
-            print(f"  view {i + 1}/{len(poses)}: near {near:.3f}, far {far:.3f}", flush=True)
+            print(f"  view {i + 1}/{len(poses)}: near {rows[-1][15]:.3f}, far {rows[-1][16]:.3f}",
+                  flush=True)
     np.save(out / "poses_bounds.npy", np.asarray(rows, np.float64))
     probe = write_probe(scene, out, cfg, poses) if cfg.probe_height > 0 else None
     meta = {"envmap": None if cfg.envmap is None else str(Path(cfg.envmap).resolve()),
@@ -296,6 +327,39 @@ def make_llff_dataset(cfg: LLFFDatasetConfig, progress: bool = False) -> dict:
             "seconds": time.perf_counter() - t0}
     (out / "meta.json").write_text(json.dumps(meta, indent=1))
     return meta
+
+
+def _lighting(cfg: LLFFDatasetConfig):
+    """(the map as an mi.Bitmap or None: the constant sky and sun, its radiance scale)."""
+    if cfg.envmap is None:
+        if cfg.probe_height > 0:
+            raise ValueError("make_llff_dataset: probe_height needs an envmap (the default sun "
+                             "is a directional light, which the probe's rays cannot hit)")
+        return None, 1.0
+    env = load_envmap(cfg.envmap)                         # validated (finite, 2:1, readable)
+    scale = (float(cfg.envmap_scale) if cfg.envmap_scale is not None else
+             auto_exposure(read_envmap_file(cfg.envmap)[0].astype(np.float64)))
+    return env, scale
+
+
+def _write_view(scene, cfg: LLFFDatasetConfig, i: int, to_world: np.ndarray, out: Path) -> np.ndarray:
+    """Render view ``i`` into ``images/`` and each ``images_<k>/``; returns its
+    ``poses_bounds.npy`` row (near/far: the 0.1 / 99.9 percentiles of its z-depths)."""
+    cam = Camera(to_world, cfg.width, cfg.height, cfg.fov_x_deg)
+    z = z_depths(scene, cam)
+    zf = z[np.isfinite(z)]
+    if zf.size == 0:
+        raise RuntimeError(f"view {i} sees nothing of the scene")
+    near, far = np.percentile(zf, 0.1), np.percentile(zf, 99.9)
+    img = mi.render(scene, sensor=mi.load_dict(cam.sensor_dict(spp=cfg.spp)),
+                    integrator=scene.integrator(), spp=cfg.spp, seed=cfg.seed * 1000 + i)
+    srgb = np.clip(srgb_encode(np.clip(np.asarray(img, np.float64)[..., :3], 0, None)), 0, 1)
+    name = f"image{i:03d}.png"
+    write_png8(out / "images" / name, srgb)
+    for k in cfg.downscales:
+        write_png8(out / f"images_{k}" / name, downscale(srgb.astype(np.float32), k))
+    focal = 0.5 * cfg.width / np.tan(np.radians(cfg.fov_x_deg) / 2)
+    return llff_row(to_world, cfg.width, cfg.height, focal, near, far)
 
 
 def write_probe(scene, out: Path, cfg: LLFFDatasetConfig, poses) -> dict:

@@ -160,6 +160,27 @@ class ObjectDatasetConfig:
             raise ValueError(f"ObjectDatasetConfig.radius must be > 0 (got {self.radius})")
 
 
+@dataclass
+class SceneDatasetConfig:
+    """Sizes of ``comgs make-dataset scene``: the procedural table-top scene
+    (``data.procedural.scene_dataset_config``, which fixes everything else) with SfM-like
+    points, the scene preset's test case.
+
+    n_train / n_test: training / test views (default 60 / 12); resolution: image side in
+    pixels (default 96); points: SfM-like points in ``points3d.ply`` (default 20000; 0: no
+    file); seed: camera, point and noise seed (default 0).
+    """
+    n_train: int = 60
+    n_test: int = 12
+    resolution: int = 96
+    points: int = 20_000
+    seed: int = 0
+
+    def __post_init__(self):
+        if int(self.points) < 0:
+            raise ValueError(f"SceneDatasetConfig.points must be >= 0 (got {self.points})")
+
+
 # ----------------------------------------------------------------------------- cameras
 
 def look_at(origin, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -264,6 +285,57 @@ def make_object_dataset(cfg: ObjectDatasetConfig, progress: bool = True) -> dict
     """
     t0 = time.perf_counter()
     cfg = dataclasses.replace(cfg)  # re-validates numeric fields
+    src = _object_inputs(cfg)
+    rng = np.random.default_rng(cfg.seed)
+    cams = {"train": (test_cameras(cfg.n_train, src.radius, cfg.train_rings_deg)
+                      if cfg.train_rings_deg else
+                      train_cameras(cfg.n_train, src.radius, rng, cfg.train_elevation_deg)),
+            "test": test_cameras(cfg.n_test, src.radius, cfg.test_elevations_deg)}
+    out = Path(cfg.out_dir)
+    relight_names = [p.stem for p in src.relight]
+    for sub in ["train", "test", *(f"test_relight/{n}" for n in relight_names)]:
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    spp_test = cfg.spp_test or 2 * cfg.spp
+    renderer = sio.Renderer(_scene_spec(cfg, src), src.env_bitmaps[src.env_path])
+    train_images = _render_views(renderer, cams, cfg, out, spp_test, progress)
+    if cfg.sfm_points > 0:
+        pts, cols = sample_visible_points(renderer.scene, cams["train"], train_images, cfg.fov_deg,
+                                          int(cfg.sfm_points), np.random.default_rng(cfg.seed + 17),
+                                          radius=src.bound_r)
+        write_points_ply(out / "points3d.ply", pts, cols)
+    _render_relit(renderer, cams["test"], src, cfg, out, spp_test, progress)
+    angle_x = float(np.radians(cfg.fov_deg))
+    for split in ("train", "test"):
+        _write_json(out / f"transforms_{split}.json", {
+            "camera_angle_x": angle_x, "w": cfg.resolution, "h": cfg.resolution,
+            "frames": [_frame_json(c) for c in cams[split]]})
+    seconds = time.perf_counter() - t0
+    meta = _meta(cfg, src.mesh_path, src.env_path, src.relight, src.texture, src.obj_m,
+                 src.bound_r, src.radius, src.raw, src.variant, spp_test, seconds)
+    _write_json(out / "meta.json", meta)
+    return {"out_dir": str(out), "n_train": cfg.n_train, "n_test": len(cams["test"]),
+            "relight": relight_names, "radius": src.radius, "resolution": cfg.resolution,
+            "seconds": seconds, "variant": src.variant}
+
+
+@dataclass
+class _ObjectInputs:
+    """The checked inputs of one object dataset: files, loaded maps and mesh, framing."""
+    mesh_path: Path
+    env_path: Path
+    relight: list[Path]
+    variant: str
+    env_bitmaps: dict              # {map path: mi.Bitmap}, the lighting map and relit ones
+    raw: dict                      # sio.load_mesh of the mesh file
+    obj_m: np.ndarray              # [4, 4] mesh file -> world
+    bound_r: float                 # bounding-sphere radius in world units
+    texture: Path | None
+    radius: float                  # camera distance from the origin
+
+
+def _object_inputs(cfg: ObjectDatasetConfig) -> _ObjectInputs:
+    """Find and load every input (FileNotFoundError / ValueError before any rendering) and
+    frame the object: the camera radius fits its bounding sphere into the field of view."""
     if cfg.mesh is not None and str(cfg.mesh) == BUILTIN_DETAIL_MESH:   # procedural stress object
         mesh_path = write_detail_mesh(Path(cfg.out_dir) / "source")
     else:
@@ -285,67 +357,59 @@ def make_object_dataset(cfg: ObjectDatasetConfig, progress: bool = True) -> dict
     if radius <= bound_r:
         warnings.warn(f"camera radius {radius:.3f} is inside the object's bounding sphere "
                       f"({bound_r:.3f}); views may clip the object")
+    return _ObjectInputs(mesh_path, env_path, relight, variant, env_bitmaps, raw, obj_m,
+                         bound_r, texture, radius)
 
-    rng = np.random.default_rng(cfg.seed)
-    cams = {"train": (test_cameras(cfg.n_train, radius, cfg.train_rings_deg) if cfg.train_rings_deg
-                      else train_cameras(cfg.n_train, radius, rng, cfg.train_elevation_deg)),
-            "test": test_cameras(cfg.n_test, radius, cfg.test_elevations_deg)}
-    out = Path(cfg.out_dir)
-    relight_names = [p.stem for p in relight]
-    for sub in ["train", "test", *(f"test_relight/{n}" for n in relight_names)]:
-        (out / sub).mkdir(parents=True, exist_ok=True)
 
-    spec = sio.SceneSpec(mesh=mesh_path, object_to_world=obj_m, texture=texture,
+def _scene_spec(cfg: ObjectDatasetConfig, src: _ObjectInputs) -> sio.SceneSpec:
+    return sio.SceneSpec(mesh=src.mesh_path, object_to_world=src.obj_m, texture=src.texture,
                          base_color=cfg.base_color, roughness=cfg.roughness,
                          metallic=cfg.metallic, resolution=cfg.resolution, fov_deg=cfg.fov_deg,
                          max_depth=cfg.max_depth, envmap_to_world=ENVMAP_TO_WORLD,
                          envmap_scale=cfg.envmap_scale)
-    spp_test = cfg.spp_test or 2 * cfg.spp
 
-    def seed(i: int, kind: int) -> int:  # distinct noise per render: kind 0 train, 1 test,
-        return (int(cfg.seed) * 1_000_003 + 256 * i + kind) % 2**32  # 2 AOV, 3+k relight k
-    renderer = sio.Renderer(spec, env_bitmaps[env_path])
+
+def render_seed(seed: int, i: int, kind: int) -> int:
+    """Sampler seed of render ``i`` of one ``kind`` (distinct noise per render): kind 0 train,
+    1 test, 2 AOV, 3 + k relit under map k (the composition dataset: 2 composites)."""
+    return (int(seed) * 1_000_003 + 256 * i + kind) % 2**32
+
+
+def _render_views(renderer, cams: dict, cfg: ObjectDatasetConfig, out: Path, spp_test: int,
+                  progress: bool) -> list:
+    """Write the train and test views (test: + linear EXR and the G-buffer ground truth);
+    fills each camera's file paths; returns the train renders when SfM points are asked for."""
     train_images = []
     for split, spp in (("train", cfg.spp), ("test", spp_test)):
         for i, cam in enumerate(_bar(cams[split], f"{split} views", progress)):
-            rgba = renderer.radiance(cam["to_world_mitsuba"], spp, seed(i, int(split == "test")))
+            rgba = renderer.radiance(cam["to_world_mitsuba"], spp,
+                                     render_seed(cfg.seed, i, int(split == "test")))
             if split == "train" and cfg.sfm_points > 0:
                 train_images.append(rgba)
             cam["file_path"] = f"./{split}/r_{i}"
             sio.write_png(out / f"{split}/r_{i}.png", rgba)
             if split == "test":
                 sio.write_exr(out / f"test/r_{i}.exr", rgba)
-                gt = renderer.gbuffer(cam["to_world_mitsuba"], cfg.spp_aov, seed(i, 2))
+                gt = renderer.gbuffer(cam["to_world_mitsuba"], cfg.spp_aov, render_seed(cfg.seed, i, 2))
                 for key in ("albedo", "normal", "depth"):
                     sio.write_exr(out / f"test/r_{i}_{key}.exr", gt[key])
                     cam[f"{key}_path"] = f"./test/r_{i}_{key}.exr"
                 cam["radiance_path"] = f"./test/r_{i}.exr"
-    if cfg.sfm_points > 0:
-        pts, cols = sample_visible_points(renderer.scene, cams["train"], train_images, cfg.fov_deg,
-                                          int(cfg.sfm_points), np.random.default_rng(cfg.seed + 17),
-                                          radius=bound_r)
-        write_points_ply(out / "points3d.ply", pts, cols)
-    for k, (name, path) in enumerate(zip(relight_names, relight)):
-        renderer.set_envmap(env_bitmaps[path])
-        for i, cam in enumerate(_bar(cams["test"], f"relight {name}", progress)):
-            rgba = renderer.radiance(cam["to_world_mitsuba"], spp_test, seed(i, 3 + k))
+    return train_images
+
+
+def _render_relit(renderer, test_cams: list, src: _ObjectInputs, cfg: ObjectDatasetConfig,
+                  out: Path, spp_test: int, progress: bool) -> None:
+    """The test views under each held-out map (``test_relight/<map>/``)."""
+    for k, path in enumerate(src.relight):
+        name = path.stem
+        renderer.set_envmap(src.env_bitmaps[path])
+        for i, cam in enumerate(_bar(test_cams, f"relight {name}", progress)):
+            rgba = renderer.radiance(cam["to_world_mitsuba"], spp_test, render_seed(cfg.seed, i, 3 + k))
             stem = out / f"test_relight/{name}/r_{i}"
             sio.write_png(stem.with_suffix(".png"), rgba)
             sio.write_exr(stem.with_suffix(".exr"), rgba)
             cam.setdefault("relight", {})[name] = f"./test_relight/{name}/r_{i}"
-
-    angle_x = float(np.radians(cfg.fov_deg))
-    for split in ("train", "test"):
-        _write_json(out / f"transforms_{split}.json", {
-            "camera_angle_x": angle_x, "w": cfg.resolution, "h": cfg.resolution,
-            "frames": [_frame_json(c) for c in cams[split]]})
-    seconds = time.perf_counter() - t0
-    meta = _meta(cfg, mesh_path, env_path, relight, texture, obj_m, bound_r, radius, raw,
-                 variant, spp_test, seconds)
-    _write_json(out / "meta.json", meta)
-    return {"out_dir": str(out), "n_train": cfg.n_train, "n_test": len(cams["test"]),
-            "relight": relight_names, "radius": radius, "resolution": cfg.resolution,
-            "seconds": seconds, "variant": variant}
 
 
 def _relight_paths(maps) -> list[Path]:

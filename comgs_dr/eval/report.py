@@ -16,6 +16,7 @@ import html
 import io
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,16 @@ from comgs_dr.core import runlog
 MAX_WIDTH = 1400          # wider pictures are downscaled before inlining
 _PSNR_KEYS = ("psnr_test", "psnr_train", "psnr_select", "psnr")
 _LOSS_KEYS = ("val_ev0", "val_ev", "loss")
+
+
+@dataclass
+class ReportConfig:
+    """Settings of ``comgs report`` (:func:`write_report`; the output file is ``--out``).
+
+    title: the page's heading and window title (default None: ``comgs report: <folder
+    name>``).
+    """
+    title: str | None = None
 
 
 # ----------------------------------------------------------------------------- building blocks

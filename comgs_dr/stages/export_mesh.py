@@ -50,7 +50,20 @@ COLOURS = ("auto", "radiance", "albedo", "none")
 
 @dataclass
 class MeshConfig:
-    """Mesh export settings (``PRESETS``: fast, default, fine)."""
+    """Mesh export settings (``PRESETS``: fast, default, fine).
+
+    method: ``tsdf`` (default) or ``poisson``; resolution: TSDF voxels along the longest
+    side, or the Poisson octree depth log2(N) (default 256); views: training views fused,
+    evenly spread (default 64; None: all); trunc_voxels: TSDF truncation in voxels;
+    max_normal_deg: tsdf skips pixels whose depth-derived and rendered normals differ by
+    more (degrees); colour: ``auto`` (the albedo when step 2 ran, else the radiance),
+    ``radiance``, ``albedo`` or ``none``; min_opacity: surfels used by poisson and for the
+    bounds of both; poisson_trim: density quantile removed (0 keeps a closed surface);
+    min_component_frac: components with fewer faces are dropped; padding: bounds grown by
+    this fraction of their size.
+
+    Example: ``export_mesh(run, "mesh.ply", MeshConfig(**PRESETS["fast"], colour="none"))``.
+    """
     method: str = "tsdf"
     resolution: int = 256          # tsdf: voxels along the longest side; poisson: 2**depth ≥ N
     views: int | None = 64         # training views fused, evenly spread (None: all)
@@ -115,9 +128,9 @@ def _to_display(rgb: np.ndarray, src: str) -> np.ndarray:
 
 def _consistent(depth, normal, dirs, origins, weight, max_deg: float) -> np.ndarray:
     """[H, W] bool: covered pixels whose depth-derived normal (``depth_to_normal``) agrees
-    with the rendered normal within ``max_deg``. A pixel whose depth mixes a surface with
-    what shows through a hole in it fails; measured on a sphere of mesh-sampled surfels,
-    3-6 % of covered pixels had depth errors > 10 % of the radius."""
+    with the rendered normal within ``max_deg``. A pixel whose depth blends a surface with
+    what shows through a hole in it fails: its depth lies between the two, off both, and
+    fusing it would pull the surface there."""
     nd = np.asarray(depth_to_normal(to_jit(mi.TensorXf, depth),
                                     to_jit(mi.TensorXf, dirs),
                                     to_jit(mi.TensorXf, origins),

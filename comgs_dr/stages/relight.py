@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import drjit as dr
@@ -34,8 +35,15 @@ from comgs_dr.core.colorspace import display_composite, srgb_encode
 from comgs_dr.data.images import write_png8
 from comgs_dr.data.nerf import split_frames
 from comgs_dr.eval import metrics as M
+from comgs_dr.shading.shade import SAMPLINGS
+from comgs_dr.shading.visibility import KINDS
 from comgs_dr.surfels import load_ply
-from comgs_dr.surfels.edit import MaterialEdit, edit_materials
+from comgs_dr.surfels.edit import (
+    MaterialEdit,
+    edit_materials,
+    parse_mask_spec,
+    parse_material_spec,
+)
 from comgs_dr.surfels.params import object_size
 from comgs_dr.surfels.shape import SurfelShapeBase
 from comgs_dr.train import checkpoint as ck
@@ -85,40 +93,135 @@ def material_layers(rgba, pts, geo, sensor) -> dict:
             "metallic": grid(np.asarray(pts.metallic, np.float64)[:, None])}
 
 
-def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: int = 256,
-                visibility: str | None = None, indirect: bool | None = None,
-                envmap_scale: float = 1.0, out_dir=None, progress: bool = True,
-                max_views: int | None = None, sampling: str = "mis",
-                edit: MaterialEdit | None = None, edit_mask=None,
-                envmap_res: int | None = None) -> dict:
-    """Render ``views`` of a finished step-2 run under ``envmap`` with ``mi.render`` of the
-    ``sop_pbr`` integrator (``sampling='mis'``: env-map + BRDF importance sampling) lit by
-    an ``octenvmap`` emitter at the map's full resolution (an equirect map's height, at
-    most 1024, unless ``envmap_res``); optional material ``edit`` (whole object or
-    ``edit_mask``); writes PNGs, per-view EXRs (:func:`material_layers`) + metrics."""
+VIEWS = ("test", "train")
+
+
+@dataclass
+class RelightConfig:
+    """Settings of :func:`relight_run` (``comgs relight``).
+
+    views: which split to render, ``test`` (default) or ``train``; max_views: at most this
+    many, evenly spread (None: all). rays: S_r, light samples per shading point (default
+    256). sampling: the estimator, ``mis`` (env-map + BRDF importance sampling, default) or
+    ``uniform`` (the paper's training estimator) or ``cosine``. visibility: ``sops`` /
+    ``trace`` / ``none`` (None: the step-2 run's). indirect: the probes' indirect radiance
+    (None: only when the map is the one the dataset was captured under, since it holds the
+    training light). envmap_scale: × the map's radiance (default 1). envmap_res: side of
+    the octahedral map (None: an equirect map's height, at most 1024).
+
+    material: an edit of the object's material before relighting, comma-separated
+    ``albedo=R,G,B`` (linear) or ``scale=S[,S,S]``, ``roughness=X``, ``metallic=Y``
+    (``surfels.edit.parse_material_spec``); material_mask: the surfels it applies to,
+    ``box:x0,y0,z0,x1,y1,z1`` (world) or a file of surfel indices (default: all).
+
+    Example: ``relight_run(run, "sky.exr", cfg=RelightConfig(rays=64, max_views=4))``.
+    """
+    views: str = "test"
+    rays: int = 256
+    sampling: str = "mis"
+    visibility: str | None = None
+    indirect: bool | None = None
+    envmap_scale: float = 1.0
+    envmap_res: int | None = None
+    max_views: int | None = None
+    material: str | None = None
+    material_mask: str | None = None
+
+    def __post_init__(self):
+        if self.views not in VIEWS:
+            raise ValueError(f"RelightConfig.views must be test or train, got {self.views!r}")
+        if self.sampling not in SAMPLINGS:
+            raise ValueError(f"RelightConfig.sampling must be one of {', '.join(SAMPLINGS)}, "
+                             f"got {self.sampling!r}")
+        if self.visibility is not None and self.visibility not in KINDS:
+            raise ValueError(f"RelightConfig.visibility must be None or one of "
+                             f"{', '.join(KINDS)}, got {self.visibility!r}")
+        if self.material_mask and not self.material:
+            raise ValueError("RelightConfig.material_mask needs material (--material-mask "
+                             "needs --material)")
+        if self.material:
+            parse_material_spec(self.material)                     # a bad spec: ValueError
+
+    def edit(self) -> MaterialEdit | None:
+        """The parsed ``material`` edit (None: no edit)."""
+        return parse_material_spec(self.material) if self.material else None
+
+
+def relight_run(run_dir, envmap, material_dir=None, *, cfg: RelightConfig | None = None,
+                out_dir=None, progress: bool = True, edit: MaterialEdit | None = None,
+                edit_mask=None, **overrides) -> dict:
+    """Render ``cfg.views`` of a finished step-2 run under ``envmap`` with ``mi.render`` of
+    the ``sop_pbr`` integrator lit by an ``octenvmap`` emitter; optional material ``edit``
+    (whole object or ``edit_mask``; or ``cfg.material`` / ``cfg.material_mask`` specs);
+    writes PNGs, per-view EXRs (:func:`material_layers`) + ``metrics.json``.
+
+    ``material_dir``: the step-2 folder (default ``run_dir/material``); ``out_dir``: default
+    ``<material_dir>/relight_<map stem>_<views>``; ``overrides``: RelightConfig fields
+    (``relight_run(run, env, rays=64)``)."""
+    cfg = dataclasses.replace(cfg or RelightConfig(), **overrides)
+    if cfg.material and edit is not None:
+        raise ValueError("relight_run: give the edit as edit= or as cfg.material, not both")
     run_dir = Path(run_dir)
     mdir = Path(material_dir) if material_dir else run_dir / "material"
+    summary, info, data = _material_run(run_dir, mdir)
+    vs = select_views(data.test if cfg.views == "test" else data.train, cfg.max_views)
+    params = load_ply(str(mdir / "point_cloud.ply"))
+    if cfg.material:
+        edit, edit_mask = cfg.edit(), parse_mask_spec(cfg.material_mask, params.count)
+    if edit is not None and not edit.empty:
+        params = edit_materials(params, edit, edit_mask)
+    env_path = Path(envmap)
+    kind = cfg.visibility or summary["config"]["visibility"]
+    same_light = _captured_under(env_path, info)
+    use_indirect = same_light if cfg.indirect is None else cfg.indirect
+    scene = mi.load_dict(_scene_dict(params, env_path, mdir, summary, vs, data, cfg, kind,
+                                     use_indirect))
+    bg = 1.0 if data.white_background else 0.0
+    out = Path(out_dir) if out_dir else mdir / f"relight_{env_path.stem}_{cfg.views}"
+    out.mkdir(parents=True, exist_ok=True)
+    truth = _Truth(Path(info["data"]), info["resolution_scale"] == 1,
+                   Path(info["data"]) / f"{cfg.views}_relight" / env_path.stem,
+                   {Path(fr["file_path"]).name: fr for fr in split_frames(info["data"], cfg.views)})
+    per_view = [_relight_view(scene, i, vs[i], out, bg, truth)
+                for i in tqdm(range(len(vs)), desc=f"relight {env_path.stem}", unit="view",
+                              disable=not progress)]
+    keys = sorted({k for r in per_view for k in r if k != "view"})
+    res = {k: float(np.mean([r[k] for r in per_view if k in r])) for k in keys}
+    res.update(envmap=str(env_path), views=len(vs), indirect=use_indirect, visibility=kind,
+               rays=cfg.rays, sampling=cfg.sampling, envmap_res=scene.environment().res,
+               edit=None if edit is None else dataclasses.asdict(edit), per_view=per_view)
+    ck.atomic_write_text(out / "metrics.json", json.dumps(runlog.json_safe(res), indent=1,
+                                                           allow_nan=False))
+    return res
+
+
+def _material_run(run_dir: Path, mdir: Path):
+    """(step 2's summary, the run info, the dataset's cameras) of a finished step-2 run."""
     log = mdir / "train_log.json"
     if not log.exists():
         raise FileNotFoundError(f"{log} not found: run `comgs decompose {run_dir}` first")
     summary = json.loads(log.read_text())["summary"]
     info = read_run_info(run_dir)
     data = load_run_dataset(run_dir, info, pixels=False)       # cameras only
-    vs = select_views(data.test if views == "test" else data.train, max_views)
-    params = load_ply(str(mdir / "point_cloud.ply"))
-    if edit is not None and not edit.empty:
-        params = edit_materials(params, edit, edit_mask)
-    env_path = Path(envmap)
-    kind = visibility or summary["config"]["visibility"]
-    same_light = env_path.resolve() == Path(json.loads(
-        (Path(info["data"]) / "meta.json").read_text()).get("envmap", "")).resolve() \
-        if (Path(info["data"]) / "meta.json").exists() else False
-    use_indirect = same_light if indirect is None else indirect
-    emitter = {"type": "octenvmap", "filename": str(env_path), "scale": float(envmap_scale)}
-    if envmap_res:
-        emitter["resolution"] = int(envmap_res)
-    integ = {"type": "sop_pbr", "visibility": kind, "rays": rays, "sampling": sampling,
-             "indirect": use_indirect, "hide_emitters": True,
+    return summary, info, data
+
+
+def _captured_under(env_path: Path, info: dict) -> bool:
+    """Whether ``env_path`` is the map the run's dataset was captured under (its meta.json)."""
+    meta = Path(info["data"]) / "meta.json"
+    return env_path.resolve() == Path(json.loads(meta.read_text()).get("envmap", "")).resolve() \
+        if meta.exists() else False
+
+
+def _scene_dict(params, env_path: Path, mdir: Path, summary: dict, vs: list, data,
+                cfg: RelightConfig, kind: str, indirect: bool) -> dict:
+    """The surfels, the ``octenvmap`` emitter, the ``sop_pbr`` integrator (step 2's probe and
+    trace settings) and one RGBA sensor per view."""
+    emitter = {"type": "octenvmap", "filename": str(env_path), "scale": float(cfg.envmap_scale)}
+    if cfg.envmap_res:
+        emitter["resolution"] = int(cfg.envmap_res)
+    integ = {"type": "sop_pbr", "visibility": kind, "rays": cfg.rays, "sampling": cfg.sampling,
+             "indirect": indirect, "hide_emitters": True,
              "probe_k": summary["config"]["probe_k"], "trace_hits": summary["config"]["trace_hits"],
              "trace_offset": summary["config"]["trace_offset"] * object_size(params)}
     if kind == "sops":
@@ -128,71 +231,80 @@ def relight_run(run_dir, envmap, material_dir=None, views: str = "test", rays: i
     for i, v in enumerate(vs):
         sd = v.camera.sensor_dict(**data.clip_planes())
         scene_d[f"sensor_{i:03d}"] = {**sd, "film": {**sd["film"], "pixel_format": "rgba"}}
-    scene = mi.load_dict(scene_d)
-    integrator = scene.integrator()
-    bg = 1.0 if data.white_background else 0.0
-    out = Path(out_dir) if out_dir else mdir / f"relight_{env_path.stem}_{views}"
-    out.mkdir(parents=True, exist_ok=True)
-    gt_dir = Path(info["data"]) / f"{views}_relight" / env_path.stem
-    frames = {Path(fr["file_path"]).name: fr for fr in split_frames(info["data"], views)}
-    per_view = []
-    for i in tqdm(range(len(vs)), desc=f"relight {env_path.stem}", unit="view",
-                  disable=not progress):
-        v = vs[i]
-        with dr.suspend_grad():
-            rgba = mi.render(scene, sensor=i, seed=7)
-            img = np.asarray(display_composite(rgba, bg))
-            pts, geo = integrator.shading_points(scene, i)
-        name = v.name.replace('/', '_')
-        write_png8(out / f"{name}.png", img)
-        exr.write_layers(out / f"{name}.exr",
-                         material_layers(rgba, pts, geo, scene.sensors()[i]), MATERIAL_ATTRS)
-        rec = {"view": v.name}
-        stem = Path(v.name).name
-        gt_p = gt_dir / f"{stem}.exr"
-        if info["resolution_scale"] == 1 and gt_p.exists():
-            gt = exr.read_image(gt_p).astype(np.float64)             # premultiplied linear
-            a = gt[..., 3:4] if gt.shape[-1] > 3 else np.ones_like(gt[..., :1])
-            straight = gt[..., :3] / np.maximum(a, 1e-6)
-            gt_disp = a * _display(straight) + (1 - a) * bg
-            rec["relight_psnr"] = M.psnr(np.clip(img, 0, 1), gt_disp)
-            rec["relight_ssim"] = M.ssim(np.clip(img, 0, 1), gt_disp)
-            # per-channel scale alignment (the light's and albedo's scale ambiguity):
-            # s_c = median(gt_c / ours_c) of the linear straight colour over covered pixels
-            lin = np.asarray(rgba, np.float64)
-            Wp = lin[..., 3:4]
-            ours = lin[..., :3] / np.maximum(Wp, 1e-6)
-            cov = (a[..., 0] > 0.99) & (Wp[..., 0] > 0.99) & (ours.min(-1) > 1e-6)
-            if cov.sum() >= 10:
-                sc = np.array([np.median(straight[..., c][cov] / ours[..., c][cov]) for c in range(3)])
-                aligned = Wp * _display(ours * sc) + (1 - Wp) * bg
-                rec["relight_psnr_aligned"] = M.psnr(aligned, gt_disp)
-        fr = frames.get(stem)
-        if fr is not None and info["resolution_scale"] == 1:
-            base = Path(info["data"])
-            W = geo["W_np"]
-            if "albedo_path" in fr and (base / fr["albedo_path"]).exists():
-                ga = exr.read_image(base / fr["albedo_path"]).astype(np.float64)
-                mask = (ga[..., 3] > 0.99) & (W > 0.5)
-                pa = np.zeros_like(ga[..., :3]).reshape(-1, 3)
-                pa[geo["pix_np"]] = np.asarray(pts.albedo).T
-                pa = pa.reshape(ga.shape[:2] + (3,))
-                al, s = align_albedo(pa, ga[..., :3], mask)
-                m3 = mask[..., None]
-                rec["albedo_psnr"] = M.psnr(_display(al) * m3, _display(ga[..., :3]) * m3)
-            if "normal_path" in fr and (base / fr["normal_path"]).exists():
-                gn = exr.read_image(base / fr["normal_path"]).astype(np.float64)
-                mask = (gn[..., 3] > 0.99) & (W > 0.5) if gn.shape[-1] > 3 else (W > 0.5)
-                pn = np.zeros((W.size, 3))
-                pn[geo["pix_np"]] = np.asarray(geo["n"]).T
-                rec["normal_mae_deg"] = M.normal_mae_deg(pn.reshape(W.shape + (3,)),
-                                                         gn[..., :3], mask.astype(np.float32))
-        per_view.append(rec)
-    keys = sorted({k for r in per_view for k in r if k != "view"})
-    res = {k: float(np.mean([r[k] for r in per_view if k in r])) for k in keys}
-    res.update(envmap=str(env_path), views=len(vs), indirect=use_indirect, visibility=kind,
-               rays=rays, sampling=sampling, envmap_res=scene.environment().res,
-               edit=None if edit is None else dataclasses.asdict(edit), per_view=per_view)
-    ck.atomic_write_text(out / "metrics.json", json.dumps(runlog.json_safe(res), indent=1,
-                                                           allow_nan=False))
-    return res
+    return scene_d
+
+
+@dataclass
+class _Truth:
+    """Where the dataset keeps the ground truth of the rendered split."""
+    base: Path                      # the dataset folder
+    full_res: bool                  # the run is at full resolution (scores are comparable)
+    relit_dir: Path                 # <split>_relight/<map stem>/ (make-dataset object)
+    frames: dict                    # {file name: frame of transforms_<split>.json}
+
+
+def _relight_view(scene, i: int, v, out: Path, bg: float, truth: _Truth) -> dict:
+    """Render view ``i``, write its PNG and EXR layers; its scores against the ground truth."""
+    with dr.suspend_grad():
+        rgba = mi.render(scene, sensor=i, seed=7)
+        img = np.asarray(display_composite(rgba, bg))
+        pts, geo = scene.integrator().shading_points(scene, i)
+    name = v.name.replace('/', '_')
+    write_png8(out / f"{name}.png", img)
+    exr.write_layers(out / f"{name}.exr",
+                     material_layers(rgba, pts, geo, scene.sensors()[i]), MATERIAL_ATTRS)
+    rec = {"view": v.name}
+    stem = Path(v.name).name
+    gt_p = truth.relit_dir / f"{stem}.exr"
+    if truth.full_res and gt_p.exists():
+        rec.update(_relit_scores(rgba, img, gt_p, bg))
+    fr = truth.frames.get(stem)
+    if fr is not None and truth.full_res:
+        rec.update(_gbuffer_scores(fr, truth.base, pts, geo))
+    return rec
+
+
+def _relit_scores(rgba, img: np.ndarray, gt_p: Path, bg: float) -> dict:
+    """Relighting PSNR/SSIM (display sRGB over the background) and the PSNR after the
+    per-channel scale alignment s_c = median(gt_c / ours_c) of the linear straight colour
+    over covered pixels (the light's and albedo's scale ambiguity)."""
+    rec = {}
+    gt = exr.read_image(gt_p).astype(np.float64)             # premultiplied linear
+    a = gt[..., 3:4] if gt.shape[-1] > 3 else np.ones_like(gt[..., :1])
+    straight = gt[..., :3] / np.maximum(a, 1e-6)
+    gt_disp = a * _display(straight) + (1 - a) * bg
+    rec["relight_psnr"] = M.psnr(np.clip(img, 0, 1), gt_disp)
+    rec["relight_ssim"] = M.ssim(np.clip(img, 0, 1), gt_disp)
+    lin = np.asarray(rgba, np.float64)
+    Wp = lin[..., 3:4]
+    ours = lin[..., :3] / np.maximum(Wp, 1e-6)
+    cov = (a[..., 0] > 0.99) & (Wp[..., 0] > 0.99) & (ours.min(-1) > 1e-6)
+    if cov.sum() >= 10:
+        sc = np.array([np.median(straight[..., c][cov] / ours[..., c][cov]) for c in range(3)])
+        aligned = Wp * _display(ours * sc) + (1 - Wp) * bg
+        rec["relight_psnr_aligned"] = M.psnr(aligned, gt_disp)
+    return rec
+
+
+def _gbuffer_scores(fr: dict, base: Path, pts, geo) -> dict:
+    """Albedo PSNR after :func:`align_albedo` and the normal MAE (degrees) against the
+    frame's G-buffer ground truth, where the dataset has it."""
+    rec = {}
+    W = geo["W_np"]
+    if "albedo_path" in fr and (base / fr["albedo_path"]).exists():
+        ga = exr.read_image(base / fr["albedo_path"]).astype(np.float64)
+        mask = (ga[..., 3] > 0.99) & (W > 0.5)
+        pa = np.zeros_like(ga[..., :3]).reshape(-1, 3)
+        pa[geo["pix_np"]] = np.asarray(pts.albedo).T
+        pa = pa.reshape(ga.shape[:2] + (3,))
+        al, s = align_albedo(pa, ga[..., :3], mask)
+        m3 = mask[..., None]
+        rec["albedo_psnr"] = M.psnr(_display(al) * m3, _display(ga[..., :3]) * m3)
+    if "normal_path" in fr and (base / fr["normal_path"]).exists():
+        gn = exr.read_image(base / fr["normal_path"]).astype(np.float64)
+        mask = (gn[..., 3] > 0.99) & (W > 0.5) if gn.shape[-1] > 3 else (W > 0.5)
+        pn = np.zeros((W.size, 3))
+        pn[geo["pix_np"]] = np.asarray(geo["n"]).T
+        rec["normal_mae_deg"] = M.normal_mae_deg(pn.reshape(W.shape + (3,)),
+                                                 gn[..., :3], mask.astype(np.float32))
+    return rec

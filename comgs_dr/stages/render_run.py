@@ -5,6 +5,7 @@ display PNGs."""
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import mitsuba as mi
@@ -24,6 +25,26 @@ from comgs_dr.surfels.scene import gbuffer_scene
 from comgs_dr.train import background as bgenv
 from comgs_dr.train import checkpoint as ck
 from comgs_dr.train.run import load_run_dataset, read_run_info
+
+
+VIEWS = ("test", "train")
+
+
+@dataclass
+class RenderConfig:
+    """Settings of ``comgs render`` (:func:`render_run`).
+
+    views: the split rendered and scored, ``test`` (default) or ``train``; max_hits: surfels
+    blended along each ray at most (default 32).
+    """
+    views: str = "test"
+    max_hits: int = 32
+
+    def __post_init__(self):
+        if self.views not in VIEWS:
+            raise ValueError(f"RenderConfig.views must be test or train, got {self.views!r}")
+        if self.max_hits < 1:
+            raise ValueError(f"RenderConfig.max_hits must be >= 1, got {self.max_hits}")
 
 
 def _gt_geometry(data_dir: Path, split: str) -> list:
