@@ -59,7 +59,7 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--white-background", action="store_true")
     # RadianceConfig.densify is a schedule (a dict), not a scalar: the switch picks the
     # schedule scaled to the run's iterations
-    p.add_argument("--densify", action="store_true",
+    p.add_argument("--densify", action="store_true", dest="densify_scaled",
                    help="2DGS clone/split + opacity resets (densify until half of the run, reset "
                         "at its quarter and half; default: prune only, since a dense init needs "
                         "no new surfels; useful after a random init)")
@@ -71,7 +71,7 @@ def _add_reconstruct(sub) -> None:
 def _cmd_reconstruct(args) -> int:
     set_variant(args.mitsuba_variant)
     kw = field_overrides(args, RadianceConfig)
-    if args.densify:
+    if args.densify_scaled:
         kw["densify"] = scaled_density_schedule(kw.get("iterations", RadianceConfig.iterations))
     cfg = RadianceConfig.from_preset(args.preset, **kw)      # flags checked before the data
     data = load_dataset(args.data, white_background=args.white_background,
