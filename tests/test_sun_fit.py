@@ -130,3 +130,44 @@ def test_grid_and_config_checks():
     few = sf.fit_sun(np.zeros((10, 3)), np.tile([0, 0, 1.0], (10, 1)), np.ones((10, 3)),
                      lambda d: np.ones(10))
     assert not few.usable and "receivers" in few.reason
+
+
+def test_a_seen_sun_gets_its_power_and_colour_from_the_shadows():
+    """The sun's direction known (the panorama saw it): k per channel from the shadows
+    toward it; a colour cast of the whole ground (the albedo) is no shadow and changes
+    nothing; a wrong direction finds no shadow."""
+    sc, p = _scene(True)
+    x, n, L, vis = sf.scene_receivers(sc, p, "srgb", CFG)
+    warm = np.array([1.0, 0.8, 0.5])
+    at = sf.fit_sun(x, n, L * (1.0 + K_TRUE * warm) / (1.0 + K_TRUE), vis, CFG,
+                    direction=SUN)       # a colour cast that is not a shadow: no effect on k
+    assert at.usable and "seen sun" in at.reason
+    np.testing.assert_allclose(at.direction, SUN)
+    assert at.k == pytest.approx(K_TRUE, rel=0.25)
+    np.testing.assert_allclose(at.k_rgb, at.k, rtol=0.05)
+    off = sf.fit_sun(x, n, L, vis, CFG, direction=_unit(np.array([-0.7, 0.3, 0.4])))
+    assert not off.usable and "z =" in off.reason        # no shadow toward a wrong sun
+
+
+def test_rescale_seen_sun_sets_its_irradiance_per_channel():
+    from comgs_dr.core.equirect import equirect_directions, solid_angle_image
+    h, w = 128, 256
+    dirs = equirect_directions(h, w)
+    sky = np.where(dirs[..., 2:3] > 0, [0.4, 0.5, 0.7], 0.1).astype(np.float64)
+    pano = sky.copy()
+    cosd = dirs @ SUN
+    pano[cosd > np.cos(np.radians(3))] = [60.0, 60.0, 70.0]          # a clipped, bluish sun
+    observed = np.ones((h, w), bool)
+    d = sf.seen_sun(pano, observed, _unit(SUN + [0.1, -0.1, -0.2]))
+    assert np.degrees(np.arccos(np.clip(d @ SUN, -1, 1))) < 1.0
+    assert sf.seen_sun(sky, observed, SUN) is None                    # nothing hot there
+    k = np.array([3.0, 2.2, 1.2])
+    fit = sf.SunFit(d, float(k @ sf.LUMA), k, 20.0, 0.0, 0.1, True, "", 100, 0.0)
+    out, what = sf.rescale_seen_sun(pano, fit)
+    assert what.startswith("rescaled")
+    disk = (dirs @ d) >= np.cos(np.radians(8.0))
+    rest = out.astype(np.float64).copy()
+    rest[disk] = np.median(out[((dirs @ d) >= np.cos(np.radians(12.0))) & ~disk], 0)
+    e_sun = np.einsum("hwc,hw->c", out - rest, np.maximum(dirs @ d, 0) * solid_angle_image(h, w))
+    np.testing.assert_allclose(e_sun / sf.up_irradiance(rest), k, rtol=1e-3)
+    np.testing.assert_array_equal(out[~disk], pano[~disk].astype(np.float32))

@@ -185,10 +185,16 @@ class _Fitter:
         return np.maximum(np.expm1(np.median(c, 0)), 0.0) / max(float(np.median(cs)), 1e-3)
 
 
-def fit_sun(x, n, L, visibility, cfg: SunFitConfig | None = None, progress=None) -> SunFit:
+def fit_sun(x, n, L, visibility, cfg: SunFitConfig | None = None, progress=None,
+            direction=None) -> SunFit:
     """The sun explaining the receivers' shadows (module docstring). ``x``/``n``/``L``:
     [M, 3] receiver positions, up-facing normals and linear radiance; ``visibility(d)``:
-    [M] transmittance toward unit ``d`` (e.g. :func:`traced_visibility`)."""
+    [M] transmittance toward unit ``d`` (e.g. :func:`traced_visibility`).
+
+    ``direction``: a sun direction known otherwise (the panorama saw the sun, clipped):
+    no search, only k per channel is read from the shadows toward it; usable when its
+    shadow darkens the receivers with z ≥ ``MIN_Z`` and covers the usual share (there is
+    no rival test: the direction is not chosen by the shadows)."""
     cfg = cfg or SunFitConfig()
     cfg.validate()
     t0 = time.perf_counter()
@@ -197,6 +203,8 @@ def fit_sun(x, n, L, visibility, cfg: SunFitConfig | None = None, progress=None)
                       f"only {len(x)} up-facing receivers (ground, floor): nothing to read "
                       f"shadows on", len(x), time.perf_counter() - t0)
     f = _Fitter(x, n, L, visibility, cfg)
+    if direction is not None:
+        return _fit_at(f, np.asarray(direction, np.float64), len(x), t0)
     coarse = fibonacci_hemisphere(cfg.directions, cfg.min_elevation_deg)
     scores = []
     for d in coarse:
@@ -232,6 +240,26 @@ def fit_sun(x, n, L, visibility, cfg: SunFitConfig | None = None, progress=None)
                                 f"{100 * shadowed:.1f}% of them")
     k_rgb = f.k_rgb(d, V)
     return SunFit(d, float(k_rgb @ LUMA), k_rgb, z, rival, shadowed, usable, reason, len(x),
+                  time.perf_counter() - t0)
+
+
+def _fit_at(f: _Fitter, d: np.ndarray, receivers_: int, t0: float) -> SunFit:
+    """k per channel toward a given direction ``d`` and whether its shadow is evidence."""
+    d = d / np.linalg.norm(d)
+    z, V = f.score(d)
+    shadowed = float(np.mean((V < 0.5) & (f.n @ d > 0)))
+    if z < MIN_Z:
+        usable, reason = False, (f"the shadows toward the seen sun darken the receivers with "
+                                 f"z = {z:.1f} (needs ≥ {MIN_Z:g})")
+    elif not MIN_SHADOWED <= shadowed <= MAX_SHADOWED:
+        usable, reason = False, (f"the seen sun shades {100 * shadowed:.1f}% of the "
+                                 f"receivers (needs {100 * MIN_SHADOWED:.1f}–"
+                                 f"{100 * MAX_SHADOWED:.0f}%)")
+    else:
+        usable, reason = True, (f"the shadows toward the seen sun darken the receivers with "
+                                f"z = {z:.1f} and cover {100 * shadowed:.1f}% of them")
+    k_rgb = f.k_rgb(d, V)
+    return SunFit(d, float(k_rgb @ LUMA), k_rgb, z, 0.0, shadowed, usable, reason, receivers_,
                   time.perf_counter() - t0)
 
 
@@ -292,10 +320,7 @@ def add_sun(radiance_eq: np.ndarray, observed: np.ndarray, fit: SunFit,
     surface facing it is k_rgb × the map's E(up)."""
     rad = np.array(radiance_eq, np.float64)
     h, w = rad.shape[:2]
-    observed = np.asarray(observed, bool)
-    if observed.shape != (h, w):                     # nearest-neighbour to the map's size
-        oh, ow = observed.shape
-        observed = observed[(np.arange(h) * oh) // h][:, (np.arange(w) * ow) // w]
+    observed = _resize_mask(observed, h, w)
     dirs = equirect_directions(h, w)
     cosd = dirs @ fit.direction
     disk = cosd >= np.cos(np.radians(max(radius_deg, 1e-3)))
@@ -321,6 +346,77 @@ def add_sun(radiance_eq: np.ndarray, observed: np.ndarray, fit: SunFit,
                                     f"hot pixels of the unobserved sky reset")
 
 
+def seen_sun(radiance_eq: np.ndarray, observed: np.ndarray, near: np.ndarray,
+             cone_deg: float = 30.0):
+    """The direction of the sun the panorama saw near ``near`` (a fitted direction), or None.
+
+    Among the observed pixels within ``cone_deg`` of ``near``, those brighter than
+    ``HOT_FACTOR`` × the observed sky's median luminance are the sun; its direction is
+    their luminance-weighted mean. The fit's own direction can sit on a ridge of
+    elevations (a shadow that ends on a wall); a sun in view fixes it."""
+    rad = np.asarray(radiance_eq, np.float64)
+    h, w = rad.shape[:2]
+    observed = _resize_mask(observed, h, w)
+    dirs = equirect_directions(h, w)
+    sky = observed & (dirs[..., 2] > 0)
+    if not sky.any():
+        return None
+    lum = rad @ LUMA
+    ref = float(np.median(lum[sky]))
+    hot = sky & (dirs @ np.asarray(near) >= np.cos(np.radians(cone_deg))) & (
+        lum > HOT_FACTOR * max(ref, 1e-12))
+    if not hot.any():
+        return None
+    wgt = (lum * solid_angle_image(h, w))[hot]
+    d = (wgt[:, None] * dirs[hot]).sum(0)
+    return d / np.linalg.norm(d)
+
+
+def rescale_seen_sun(radiance_eq: np.ndarray, fit: SunFit, radius_deg: float = 8.0,
+                     ring_deg: float = 12.0):
+    """The panorama with its seen sun's irradiance set from the shadows: (new equirect
+    [H, W, 3], what was done: str).
+
+    A sun in a photo clips: the panorama knows where it is but guesses its power and
+    colour (from the clipped pixels' surroundings, bluish under a blue sky). The shadows
+    measure both, relative to the sky: k_rgb = E_sun(facing d) / E_up per channel
+    (:func:`fit_sun` with ``direction``). The sun is the excess radiance within
+    ``radius_deg`` of ``fit.direction`` above the median of the ring out to ``ring_deg``;
+    it is scaled per channel so that its irradiance on a surface facing it is k_rgb × the
+    E(up) of the rest of the map."""
+    rad = np.array(radiance_eq, np.float64)
+    h, w = rad.shape[:2]
+    dirs = equirect_directions(h, w)
+    sa = solid_angle_image(h, w)
+    cosd = dirs @ fit.direction
+    disk = cosd >= np.cos(np.radians(radius_deg))
+    ring = (cosd >= np.cos(np.radians(ring_deg))) & ~disk
+    if not disk.any() or not ring.any():
+        return radiance_eq, "kept: the sun's disk is smaller than the map's pixels"
+    bg = np.median(rad[ring], 0)
+    excess = np.maximum(rad[disk] - bg, 0.0)
+    e_sun = (excess * (np.maximum(cosd, 0.0) * sa)[disk][:, None]).sum(0)
+    sky = rad.copy()
+    sky[disk] = bg
+    target = np.asarray(fit.k_rgb, np.float64) * up_irradiance(sky)
+    if not (e_sun > 1e-12).all():
+        return radiance_eq, "kept: no sun above the sky around it in some channel"
+    gain = target / e_sun
+    rad[disk] = bg + excess * gain
+    return rad.astype(np.float32), (f"rescaled the seen sun to the shadows' E_sun/E_up "
+                                    f"{fit.k:.2f} (k; gain per channel "
+                                    f"{', '.join(f'{g:.2f}' for g in gain)})")
+
+
+def _resize_mask(mask, h: int, w: int) -> np.ndarray:
+    """Nearest-neighbour resize of a [h', w'] bool mask to [h, w]."""
+    mask = np.asarray(mask, bool)
+    if mask.shape != (h, w):
+        oh, ow = mask.shape
+        mask = mask[(np.arange(h) * oh) // h][:, (np.arange(w) * ow) // w]
+    return mask
+
+
 def fitted_normals(means, normals, opacity, neighbours: int = 8, radius_spacings: float = 3.0):
     """[N, 3] normals of planes fitted to the opaque surfels around each surfel
     (:func:`comgs_dr.sops.occlusion.plane_normals`, radius ``radius_spacings`` × the median
@@ -344,6 +440,15 @@ def fit_sun_in_scene(scene, params, colour_space: str = "srgb",
     rays) and its ``params`` (``SurfelParams``: positions, orientations, opacities, the
     SH DC colour as the receivers' radiance, in ``colour_space`` 'srgb' or 'linear')."""
     cfg = cfg or SunFitConfig()
+    return fit_sun(*scene_receivers(scene, params, colour_space, cfg), cfg, progress)
+
+
+def scene_receivers(scene, params, colour_space: str = "srgb",
+                    cfg: SunFitConfig | None = None):
+    """(x, n, L, visibility) of :func:`fit_sun` from a surfel scene (see
+    :func:`fit_sun_in_scene`): the up-facing, sky-open receivers, their radiance with the
+    sky's occlusion divided out, and their traced visibility toward any direction."""
+    cfg = cfg or SunFitConfig()
     d = params.to_numpy()
     normals = quat_to_matrix(d["quats"])[:, :, 2]
     colour = np.clip(0.5 + SH_C0 * np.asarray(d["sh"])[:, 0], 0.0, None)
@@ -365,7 +470,7 @@ def fit_sun_in_scene(scene, params, colour_space: str = "srgb",
         x, n, L = x[open_], n[open_], L[open_]
         vis = traced_visibility(scene, x, n, offset, cfg.max_hits)
         L = L / np.maximum(sky_visibility(vis, n), MIN_SKY)[:, None]
-    return fit_sun(x, n, L, vis, cfg, progress)
+    return x, n, L, vis
 
 
 def sky_visibility(vis, n, rays: int = 48) -> np.ndarray:
