@@ -12,12 +12,17 @@ truth is a composition dataset's (``GT_DIR/../empty/<basename>.exr``, the scene 
 objects, and ``GT_DIR/../mask/<basename>.png``, their pixels), ``region`` adds what a user
 looks at (``eval.comp_region``): PSNR in the object+shadow region, the shadow's darkness
 against the truth's and the object's mean colour per channel against the truth's.
+
+:func:`render_comp` runs the phases in order: check the settings
+(:meth:`RenderCompConfig.validate`), the cameras and their ground truth, load the scene,
+render each frame (:func:`_render_frame`), summarise.
 """
 from __future__ import annotations
 
 import json
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import drjit as dr
@@ -32,12 +37,59 @@ from comgs_dr.data.images import read_image, write_png8
 from comgs_dr.integrators.comgs_composite import is_file_property
 from comgs_dr.eval import comp_region
 from comgs_dr.eval.metrics import psnr, ssim
+from comgs_dr.surfels.edit import parse_material_spec
 from comgs_dr.train.checkpoint import atomic_write_text
 
 VARIANTS = ("sop", "trace", "noshadow", "paste")
 MAX_SIDE = 16384        # px a side; and W·H ≤ (MAX_SIDE/2)²: the per-hit buffers (W·H·max_hits
                         # entries) must stay below Dr.Jit's 2³² array limit
 log = logging.getLogger(__name__)
+
+
+@dataclass
+class RenderCompConfig:
+    """Settings of :func:`render_comp`.
+
+    variant: "sop" (default: shadows from the cached probes), "trace" (occlusion traced per
+        frame), "noshadow" or "paste" (see the module docstring).
+    materials: {object name: material spec} overrides, not with "paste"; a spec as
+        ``surfels.edit.parse_material_spec`` reads it: ``albedo=R,G,B`` (linear, in
+        [0, 1]) or ``scale=S[,S,S]`` (multiplies the albedo), ``roughness=X``,
+        ``metallic=Y``. Example: ``{"chair": "albedo=0.8,0.1,0.1,roughness=0.3"}``.
+    res: image size in pixels, ``W`` or ``(W, H)`` (None: the ground truth's, else the
+        camera file's); at most ``MAX_SIDE`` a side and (MAX_SIDE/2)² pixels.
+    rays: S_r, the integrator's rays per pixel for shading and for shadows (None: its
+        default, 256).
+    seed: sampler seed of the first frame; frame i renders with seed + i (default 0).
+    """
+    variant: str = "sop"
+    materials: dict | None = None
+    res: int | tuple | None = None
+    rays: int | None = None
+    seed: int = 0
+
+    def validate(self) -> None:
+        """ValueError naming the first setting no render can use."""
+        if self.variant not in VARIANTS:
+            raise ValueError(f"render-comp: variant must be one of {', '.join(VARIANTS)}, "
+                             f"got {self.variant!r}")
+        if self.materials and self.variant == "paste":
+            raise ValueError("render-comp: material overrides do not apply to variant 'paste' "
+                             "(it shows the objects' captured radiance); use sop, trace or "
+                             "noshadow")
+        for spec in (self.materials or {}).values():
+            parse_material_spec(spec)            # a clear error before anything is loaded
+        res = self.res
+        sizes = [] if res is None else [res] if isinstance(res, int) else list(res)
+        if len(sizes) > 2 or any(isinstance(v, bool) or not isinstance(v, (int, np.integer))
+                                 or v < 1 for v in sizes):
+            raise ValueError(f"render-comp: res must be W or (W, H) with positive integers, "
+                             f"got {res!r}")
+        if any(v > MAX_SIDE for v in sizes):
+            raise ValueError(f"render-comp: res {res!r} is beyond {MAX_SIDE} px a side")
+        rays = self.rays
+        if rays is not None and (isinstance(rays, bool) or int(rays) != rays or rays < 1):
+            raise ValueError(f"render-comp: rays must be an integer >= 1, got {rays!r}")
 
 
 def load_comp_scene(comp_dir, variant: str = "sop", materials: dict | None = None,
@@ -59,109 +111,55 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
                 seed: int = 0, progress: bool = True) -> dict:
     """Render every camera of ``cameras`` (a NeRF-synthetic ``transforms*.json``, or a dataset
     folder / ``poses_bounds.npy``: its test views, ``comp_folder.camera_source``); returns
-    the metrics dict (written to ``metrics_<variant>.json`` when ``gt_dir`` is given)."""
-    if variant not in VARIANTS:
-        raise ValueError(f"render-comp: variant must be one of {', '.join(VARIANTS)}, got {variant!r}")
-    sizes = [] if res is None else [res] if isinstance(res, int) else list(res)
-    if len(sizes) > 2 or any(isinstance(v, bool) or not isinstance(v, (int, np.integer))
-                             or v < 1 for v in sizes):
-        raise ValueError(f"render-comp: res must be W or (W, H) with positive integers, got {res!r}")
-    if any(v > MAX_SIDE for v in sizes):
-        raise ValueError(f"render-comp: res {res!r} is beyond {MAX_SIDE} px a side")
-    if materials and variant == "paste":
-        raise ValueError("render-comp: material overrides do not apply to variant 'paste' (it "
-                         "shows the objects' captured radiance); use sop, trace or noshadow")
-    if rays is not None and (isinstance(rays, bool) or int(rays) != rays or rays < 1):
-        raise ValueError(f"render-comp: rays must be an integer >= 1, got {rays!r}")
+    the metrics dict (written to ``metrics_<variant>.json`` when ``gt_dir`` is given).
+    ``variant``, ``materials``, ``res``, ``rays``, ``seed``: see :class:`RenderCompConfig`."""
+    RenderCompConfig(variant, materials, res, rays, seed).validate()
     comp_dir = Path(comp_dir)
     manifest = comp_folder.read_manifest(comp_dir)
     cams = comp_folder.camera_source(cameras, manifest.get("world_from_source"), res)
-    gts = {}
-    if gt_dir is not None:
-        missing = [c["name"] for c in cams if not (Path(gt_dir) / f"{c['name']}.png").is_file()]
-        if missing:
-            raise FileNotFoundError(f"render-comp: no ground truth for {len(missing)} of "
-                                    f"{len(cams)} frames in {gt_dir} (e.g. {missing[0]}.png)")
-        for c in cams:
-            gts[c["name"]] = read_image(Path(gt_dir) / f"{c['name']}.png")[..., :3]
-            gh, gw = gts[c["name"]].shape[:2]
-            if res is None:
-                c["height"], c["width"] = gh, gw
-            elif (c["width"], c["height"]) != (gw, gh):
-                raise ValueError(f"render-comp: res {c['width']}×{c['height']} is not the ground "
-                                 f"truth's size ({c['name']}.png is {gw}×{gh}): leave res out to "
-                                 f"render at the ground truth's size")
-    for c in cams:
-        if c["width"] is not None and c["width"] * c["height"] > MAX_SIDE * MAX_SIDE // 4:
-            raise ValueError(f"render-comp: frame {c['name']} is {c['width']}×{c['height']} px, "
-                             f"beyond the {MAX_SIDE // 2}² the hit buffer holds; give a "
-                             f"smaller res")
+    gts = _ground_truth(gt_dir, cams, res) if gt_dir is not None else {}
+    _check_frame_sizes(cams)
     regions = _region_truth(gt_dir, cams) if gt_dir is not None else {}
     extra = {"rays": int(rays), "shadow_rays": int(rays)} if rays else {}
     clip = comp_folder.clip_for(manifest, cams)        # scaled to the composition
     scene = load_comp_scene(comp_dir, variant, materials,
                             [comp_folder.sensor_dict(cams[0], clip=clip)], **extra)
-    integrator = scene.integrator()
-    sensor = scene.sensors()[0]
-    params = mi.traverse(sensor)
-    out_dir = comp_dir / "renders" / variant
-    out_dir.mkdir(parents=True, exist_ok=True)
-    names = {f"{c['name']}.png" for c in cams}
-    stale = sorted(p.name for p in out_dir.glob("*.png") if p.name not in names)
-    if stale:
-        log.warning("render-comp: %s holds %d frame(s) not of these cameras (e.g. %s), from an "
-                    "earlier run: they are left there", out_dir, len(stale), stale[0])
-    if not gt_dir and (comp_dir / f"metrics_{variant}.json").is_file():
-        log.warning("render-comp: %s is from an earlier run with ground truth (its 'cameras' "
-                    "says which); without --gt-dir it is not rewritten",
-                    comp_dir / f"metrics_{variant}.json")
-    frames = []
-    size = (cams[0]["width"], cams[0]["height"])
-    stage, jsonl = f"render-comp {variant}", f"render_{variant}.{runlog.LOG_NAME}"
-    runlog.rewrite(comp_dir, [], name=jsonl)        # (render time, per-frame error) records
-    for i, c in enumerate(tqdm(cams, desc=f"render-comp {variant}", unit="frame",
-                               disable=not progress)):
-        if (c["width"], c["height"]) != size:
-            raise ValueError(f"render-comp: frame {c['name']} is {c['width']}×{c['height']}, "
-                             f"the first frame {size[0]}×{size[1]}: one size per camera file")
-        params["to_world"] = mi.ScalarTransform4f(np.asarray(c["to_world"]).tolist())
-        params.update()
-        t = time.perf_counter()
-        img = mi.render(scene, sensor=sensor, seed=seed + i)
-        dr.eval(img)
-        lin = np.asarray(img, np.float32)[..., :3]
-        dt = time.perf_counter() - t
-        if not np.all(np.isfinite(lin)):
-            raise FloatingPointError(f"render-comp: frame {c['name']} has non-finite pixels")
-        disp = np.clip(srgb_encode(np.clip(lin, 0.0, None)), 0.0, 1.0)
-        write_png8(out_dir / f"{c['name']}.png", disp)
-        rec = {"name": c["name"], "seconds": dt}
-        if c["name"] in gts:
-            q = np.round(disp * 255.0) / 255.0          # score the written 8-bit image
-            rec.update(psnr=psnr(q, gts[c["name"]]), ssim=ssim(q, gts[c["name"]]))
-        if c["name"] in regions:
-            rs = comp_region.frame_scores(q, gts[c["name"]], *regions[c["name"]])
-            rec["region"] = rs
-            if rs["region_pixels"]:
-                rec["psnr_region"] = -10 * np.log10(max(rs["region_mse"], 1e-12))
-        frames.append(rec)
-        runlog.append(comp_dir, runlog.record(stage, sum(f["seconds"] for f in frames),
-                                              frame=i, **{k: v for k, v in rec.items()
-                                                          if k in ("psnr", "ssim", "psnr_region")}),
-                      name=jsonl)
-    times = [f["seconds"] for f in frames]
-    summary = {"variant": variant, "cameras": str(cameras), "frames": len(frames),
-               "resolution": list(size),
-               "frame_seconds": float(np.median(times[1:] if len(times) > 1 else times)),
-               "first_frame_seconds": times[0], "renders": str(out_dir), "per_frame": frames}
-    if gts:
-        summary["psnr"] = float(np.mean([f["psnr"] for f in frames]))
-        summary["ssim"] = float(np.mean([f["ssim"] for f in frames]))
-        if regions:
-            summary["region"] = comp_region.summarise([f.pop("region") for f in frames])
-        atomic_write_text(comp_dir / f"metrics_{variant}.json", json.dumps(runlog.json_safe(summary), indent=1,
-                                      allow_nan=False))
-    return summary
+    out_dir = _render_folder(comp_dir, variant, cams, gt_dir)
+    frames = _render_frames(scene, cams, comp_dir, out_dir, variant, gts, regions, seed,
+                            progress)
+    return _summarise(frames, cams, comp_dir, cameras, variant, out_dir, gts, regions)
+
+
+# ---------------------------------------------------------------------------------------
+# Cameras and ground truth
+
+def _ground_truth(gt_dir, cams: list, res) -> dict:
+    """{frame: ground truth [H, W, 3]} of every camera; without ``res`` each camera takes
+    its ground truth's size, with it the sizes must agree."""
+    missing = [c["name"] for c in cams if not (Path(gt_dir) / f"{c['name']}.png").is_file()]
+    if missing:
+        raise FileNotFoundError(f"render-comp: no ground truth for {len(missing)} of "
+                                f"{len(cams)} frames in {gt_dir} (e.g. {missing[0]}.png)")
+    gts = {}
+    for c in cams:
+        gts[c["name"]] = read_image(Path(gt_dir) / f"{c['name']}.png")[..., :3]
+        gh, gw = gts[c["name"]].shape[:2]
+        if res is None:
+            c["height"], c["width"] = gh, gw
+        elif (c["width"], c["height"]) != (gw, gh):
+            raise ValueError(f"render-comp: res {c['width']}×{c['height']} is not the ground "
+                             f"truth's size ({c['name']}.png is {gw}×{gh}): leave res out to "
+                             f"render at the ground truth's size")
+    return gts
+
+
+def _check_frame_sizes(cams: list) -> None:
+    """ValueError for a frame beyond the (MAX_SIDE/2)² pixels of the hit buffer."""
+    for c in cams:
+        if c["width"] is not None and c["width"] * c["height"] > MAX_SIDE * MAX_SIDE // 4:
+            raise ValueError(f"render-comp: frame {c['name']} is {c['width']}×{c['height']} px, "
+                             f"beyond the {MAX_SIDE // 2}² the hit buffer holds; give a "
+                             f"smaller res")
 
 
 def _region_truth(gt_dir, cams) -> dict:
@@ -178,3 +176,103 @@ def _region_truth(gt_dir, cams) -> dict:
         mask = read_image(m)
         out[name] = (read_exr(e)[..., :3], (mask[..., 0] if mask.ndim == 3 else mask) > 0.5)
     return out
+
+
+# ---------------------------------------------------------------------------------------
+# Rendering
+
+def _render_folder(comp_dir: Path, variant: str, cams: list, gt_dir) -> Path:
+    """``COMP_DIR/renders/<variant>/``, created; warns about what an earlier run left."""
+    out_dir = comp_dir / "renders" / variant
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names = {f"{c['name']}.png" for c in cams}
+    stale = sorted(p.name for p in out_dir.glob("*.png") if p.name not in names)
+    if stale:
+        log.warning("render-comp: %s holds %d frame(s) not of these cameras (e.g. %s), from an "
+                    "earlier run: they are left there", out_dir, len(stale), stale[0])
+    if not gt_dir and (comp_dir / f"metrics_{variant}.json").is_file():
+        log.warning("render-comp: %s is from an earlier run with ground truth (its 'cameras' "
+                    "says which); without --gt-dir it is not rewritten",
+                    comp_dir / f"metrics_{variant}.json")
+    return out_dir
+
+
+def _render_frames(scene, cams: list, comp_dir: Path, out_dir: Path, variant: str, gts: dict,
+                   regions: dict, seed: int, progress: bool) -> list[dict]:
+    """Render every camera (frame i with ``seed + i``) into ``out_dir``; per frame a record
+    (name, seconds, scores), each also appended to ``render_<variant>.metrics.jsonl``."""
+    sensor = scene.sensors()[0]
+    params = mi.traverse(sensor)
+    frames = []
+    size = (cams[0]["width"], cams[0]["height"])
+    stage, jsonl = f"render-comp {variant}", f"render_{variant}.{runlog.LOG_NAME}"
+    runlog.rewrite(comp_dir, [], name=jsonl)        # (render time, per-frame error) records
+    for i, c in enumerate(tqdm(cams, desc=f"render-comp {variant}", unit="frame",
+                               disable=not progress)):
+        if (c["width"], c["height"]) != size:
+            raise ValueError(f"render-comp: frame {c['name']} is {c['width']}×{c['height']}, "
+                             f"the first frame {size[0]}×{size[1]}: one size per camera file")
+        params["to_world"] = mi.ScalarTransform4f(np.asarray(c["to_world"]).tolist())
+        params.update()
+        rec = _render_frame(scene, sensor, c["name"], seed + i, out_dir, gts, regions)
+        frames.append(rec)
+        runlog.append(comp_dir, runlog.record(stage, sum(f["seconds"] for f in frames),
+                                              frame=i, **{k: v for k, v in rec.items()
+                                                          if k in ("psnr", "ssim", "psnr_region")}),
+                      name=jsonl)
+    return frames
+
+
+def _render_frame(scene, sensor, name: str, seed: int, out_dir: Path, gts: dict,
+                  regions: dict) -> dict:
+    """Render one frame, write ``<name>.png`` and score the written 8-bit image against
+    the ground truth (and its region) where there is one."""
+    t = time.perf_counter()
+    img = mi.render(scene, sensor=sensor, seed=seed)
+    dr.eval(img)
+    lin = np.asarray(img, np.float32)[..., :3]
+    dt = time.perf_counter() - t
+    if not np.all(np.isfinite(lin)):
+        raise FloatingPointError(f"render-comp: frame {name} has non-finite pixels")
+    disp = np.clip(srgb_encode(np.clip(lin, 0.0, None)), 0.0, 1.0)
+    write_png8(out_dir / f"{name}.png", disp)
+    rec = {"name": name, "seconds": dt}
+    if name in gts:
+        q = np.round(disp * 255.0) / 255.0          # score the written 8-bit image
+        rec.update(psnr=psnr(q, gts[name]), ssim=ssim(q, gts[name]))
+    if name in regions:
+        rs = comp_region.frame_scores(q, gts[name], *regions[name])
+        rec["region"] = rs
+        if rs["region_pixels"]:
+            rec["psnr_region"] = -10 * np.log10(max(rs["region_mse"], 1e-12))
+    return rec
+
+
+def _summarise(frames: list, cams: list, comp_dir: Path, cameras, variant: str, out_dir: Path,
+               gts: dict, regions: dict) -> dict:
+    """The metrics dict of :func:`render_comp`; with ground truth also written to
+    ``metrics_<variant>.json``."""
+    times = [f["seconds"] for f in frames]
+    summary = {"variant": variant, "cameras": str(cameras), "frames": len(frames),
+               "resolution": [cams[0]["width"], cams[0]["height"]],
+               "frame_seconds": float(np.median(times[1:] if len(times) > 1 else times)),
+               "first_frame_seconds": times[0], "renders": str(out_dir), "per_frame": frames}
+    if gts:
+        summary["psnr"] = float(np.mean([f["psnr"] for f in frames]))
+        summary["ssim"] = float(np.mean([f["ssim"] for f in frames]))
+        if regions:
+            summary["region"] = comp_region.summarise([f.pop("region") for f in frames])
+        atomic_write_text(comp_dir / f"metrics_{variant}.json",
+                          json.dumps(runlog.json_safe(summary), indent=1, allow_nan=False))
+    return summary
+
+
+def summary_line(summary: dict) -> str:
+    """What ``comgs render-comp`` prints of a :func:`render_comp` summary."""
+    s = summary
+    line = (f"{s['frames']} frame(s) ({s['variant']}), first {s['first_frame_seconds']:.2f} s "
+            f"(kernel compilation included)" + (f", then {s['frame_seconds']:.3f} s/frame "
+                                                  f"(median)" if s["frames"] > 1 else ""))
+    if "psnr" in s:
+        line += f", PSNR {s['psnr']:.2f} dB, SSIM {s['ssim']:.4f}"
+    return line + f"; renders in {s['renders']}"
