@@ -4,8 +4,9 @@
 A trainer is a :class:`TrainerBase` (the :class:`LoopTrainer` protocol plus the optional
 hooks with their defaults). The loop calls ``step()`` until ``iteration`` reaches
 ``cfg.iterations``; every ``log_every`` iterations it appends a record
-``{"iteration", "time_s", **log_fields(), **stats}`` to ``log``, and every ``eval_every`` adds
-``evaluate(eval_views)`` to it (evaluation time does not count as training time). Given a
+``{"iteration", "time_s", **log_fields(), **stats}`` to ``log``, and every ``eval_every``
+(and at the last iteration) adds ``evaluate(eval_views)`` to it (evaluation time does not
+count as training time). Given a
 :class:`BestState`, every evaluation that returns ``psnr_select`` (a PSNR on *training* views,
 so the test views never choose the state) and beats the best so far is ``snapshot()``-ed.
 The config gives ``iterations``, ``log_every``, ``eval_every``, ``eval_views``,
