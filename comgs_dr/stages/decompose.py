@@ -53,6 +53,15 @@ from comgs_dr.train.run import load_run_dataset, read_run_info
 
 @dataclass
 class MaterialConfig:
+    """Step-2 settings (``comgs decompose``: every scalar field is a flag, ``--lr-env``).
+
+    Defaults follow the paper's sec. 4.1 where it gives one (2k iterations, a 256² map,
+    5k probes of 16², offset 1 % of the object size). Loss weights: L = L_pbr +
+    lambda_lam·L_lam + lambda_sops·L_sops (module docstring), plus the white-light and
+    smoothness priors (not in the paper). Learning rates per Adam step; lengths as
+    fractions of the object size; times in seconds.
+    Example: ``train_material(run, None, MaterialConfig(iterations=300, probe_count=2000))``.
+    """
     iterations: int = 2000              # sec. 4.1: 2k
     rays: int = 128                     # S_r
     sampling: str = "auto"              # auto: uniform (the paper) while the map is learnt,
