@@ -373,8 +373,8 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
     seconds["total"] = time.perf_counter() - t0
     meta = _metadata(cfg, ccfg, src, geo, specs, spp_test, seconds)
     (out / "composition.json").write_text(json.dumps(meta, indent=2))
-    return {"out_dir": str(out), "objects": list(src.objects), "n_scene_train": cfg.scene_views + cfg.sky_views,
-            "n_test": cfg.test_views, "n_object_train": cfg.object_views,
+    return {"out_dir": str(out), "objects": list(src.objects),
+            "n_scene_train": cfg.scene_views + cfg.sky_views, "n_test": cfg.test_views, "n_object_train": cfg.object_views,
             "resolution": cfg.resolution, "comp_resolution": ccfg.resolution, "seconds": seconds,
             "variant": src.variant}
 
@@ -441,17 +441,20 @@ def _render_scene(cfg, src: _Inputs, geo: _Arrangement, textures: dict, rng, out
                   spp_test: int, progress: bool) -> "SceneRenderer":
     """``scene/``: the capture of the scene without the objects (orbit views, optional sky
     views, test views, SfM points); returns its renderer for the empty composites."""
-    aim = (geo.az, float(np.degrees(np.arcsin(np.clip(geo.sun[2], -1, 1))))) if cfg.sun_view else None
+    sun_elevation = float(np.degrees(np.arcsin(np.clip(geo.sun[2], -1, 1))))
+    aim = (geo.az, sun_elevation) if cfg.sun_view else None
     cams = {"train": syn.train_cameras(cfg.scene_views, geo.scene_radius, rng,
                                        tuple(cfg.scene_elevation_deg))
-            + sky_cameras(cfg.sky_views, geo.scene_radius, rng, tuple(cfg.sky_pitch_deg), aim_deg=aim),
+            + sky_cameras(cfg.sky_views, geo.scene_radius, rng, tuple(cfg.sky_pitch_deg),
+                          aim_deg=aim),
             "test": syn.test_cameras(cfg.test_views, geo.scene_radius, (35.0, 55.0))}
     empty = SceneRenderer(scene_dict(cfg, src.env, textures, geo.layout))
     images = []
     for split, spp in (("train", cfg.spp), ("test", spp_test)):
         (out / "scene" / split).mkdir(parents=True, exist_ok=True)
         for i, cam in enumerate(syn._bar(cams[split], f"scene {split}", progress)):
-            rgba = empty.radiance(cam["to_world_mitsuba"], spp, syn.render_seed(cfg.seed, i, split == "test"))
+            rgba = empty.radiance(cam["to_world_mitsuba"], spp,
+                                  syn.render_seed(cfg.seed, i, split == "test"))
             images += [rgba] if split == "train" else []
             cam["file_path"] = f"./{split}/r_{i}"
             write_opaque(out / "scene" / split / f"r_{i}", rgba)
@@ -504,9 +507,8 @@ def _render_composites(cfg, src: _Inputs, geo: _Arrangement, textures: dict,
     for i, cam in enumerate(syn._bar(comp_cams, "composites", progress)):
         base = f"r_{i:03d}"
         for r, sub in ((full, "gt"), (empty_c, "empty")):
-            write_opaque(out / "comp" / sub / base,
-                         r.radiance(cam["to_world_mitsuba"], spp_test, syn.render_seed(cfg.seed, i, 2)),
-                         exr=True)
+            rgba = r.radiance(cam["to_world_mitsuba"], spp_test, syn.render_seed(cfg.seed, i, 2))
+            write_opaque(out / "comp" / sub / base, rgba, exr=True)
         write_png8(out / "comp" / "mask" / f"{base}.png", full.coverage(cam["to_world_mitsuba"]))
         cam.update(file_path=f"./gt/{base}", empty_path=f"./empty/{base}",
                    mask_path=f"./mask/{base}.png", radiance_path=f"./gt/{base}.exr",

@@ -319,7 +319,8 @@ def make_llff_dataset(cfg: LLFFDatasetConfig, progress: bool = False) -> dict:
     np.save(out / "poses_bounds.npy", np.asarray(rows, np.float64))
     probe = write_probe(scene, out, cfg, poses) if cfg.probe_height > 0 else None
     meta = {"envmap": None if cfg.envmap is None else str(Path(cfg.envmap).resolve()),
-            "envmap_scale": scale if cfg.envmap is not None else None, "probe": probe,"generator": GENERATOR_VERSION,
+            "envmap_scale": scale if cfg.envmap is not None else None, "probe": probe,
+            "generator": GENERATOR_VERSION,
             "config": {**asdict(cfg), "out_dir": str(cfg.out_dir)},
             "images": names, "to_world_mitsuba": [m.tolist() for m in poses],
             "near_far": [[float(r[15]), float(r[16])] for r in rows],

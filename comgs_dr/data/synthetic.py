@@ -390,7 +390,8 @@ def _render_views(renderer, cams: dict, cfg: ObjectDatasetConfig, out: Path, spp
             sio.write_png(out / f"{split}/r_{i}.png", rgba)
             if split == "test":
                 sio.write_exr(out / f"test/r_{i}.exr", rgba)
-                gt = renderer.gbuffer(cam["to_world_mitsuba"], cfg.spp_aov, render_seed(cfg.seed, i, 2))
+                gt = renderer.gbuffer(cam["to_world_mitsuba"], cfg.spp_aov,
+                                      render_seed(cfg.seed, i, 2))
                 for key in ("albedo", "normal", "depth"):
                     sio.write_exr(out / f"test/r_{i}_{key}.exr", gt[key])
                     cam[f"{key}_path"] = f"./test/r_{i}_{key}.exr"
@@ -405,7 +406,8 @@ def _render_relit(renderer, test_cams: list, src: _ObjectInputs, cfg: ObjectData
         name = path.stem
         renderer.set_envmap(src.env_bitmaps[path])
         for i, cam in enumerate(_bar(test_cams, f"relight {name}", progress)):
-            rgba = renderer.radiance(cam["to_world_mitsuba"], spp_test, render_seed(cfg.seed, i, 3 + k))
+            rgba = renderer.radiance(cam["to_world_mitsuba"], spp_test,
+                                     render_seed(cfg.seed, i, 3 + k))
             stem = out / f"test_relight/{name}/r_{i}"
             sio.write_png(stem.with_suffix(".png"), rgba)
             sio.write_exr(stem.with_suffix(".exr"), rgba)
