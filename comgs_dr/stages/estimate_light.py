@@ -40,14 +40,16 @@ from __future__ import annotations
 
 import logging
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Callable
 
 import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core.equirect import coverage, pixel_solid_angles
-from comgs_dr.lighting import envmap, hdr, scene_label, sun_fit
+from comgs_dr.lighting import backends, envmap, hdr, scene_label, sun_fit
 from comgs_dr.lighting import lights as light_head
 from comgs_dr.lighting.lights import TRUST_BRACKETS
 from comgs_dr.lighting.backends import default_backend
@@ -63,49 +65,69 @@ from comgs_dr.train.run import read_run_info
 log = logging.getLogger(__name__)
 
 __all__ = ["EstimateConfig", "LOW_COVERAGE", "check_model_files", "load_scene", "sanitize_trace",
-           "backend_input", "estimate_light", "write_outputs", "output_paths", "preview_image"]
+           "backend_input", "estimate_light", "write_outputs", "output_paths", "preview_image",
+           "sky_warning", "BackendConfig", "make_backend", "PlacementEstimateConfig",
+           "PlacementEstimator", "placement_estimator"]
 
 LOW_COVERAGE = 0.4      # the paper's smallest evaluated coverage (Appendix, Table supp_lgt)
 
 
 @dataclass
 class EstimateConfig:
-    """Settings of :func:`estimate_light` (trace size, completion EVs, octahedral size).
+    """Settings of :func:`estimate_light`.
 
-    ``colour_space``: space of the radiance field's colour ('srgb' or 'linear'); None = the
-    PLY's recorded space, or 'srgb' for a scene object. ``net_resolution`` (H, W): input size
-    of the default network backend (None: ``NetworkBackend``'s default, the training size).
+    width, height: size of the traced panorama in pixels, 2:1 (default 1024 × 512).
+    max_hits: surfels composited per panorama ray (default 32).
+    exclude_radius: surfels closer than this to the position are left out (the object
+        itself), in scene units (default 0).
+    label: the scene label that conditions the completion and the light head: "auto"
+        (default: classified from the trace, ``lighting.scene_label``), "outdoor",
+        "indoor" or "unknown".
+    evs: exposures of the completion in EV, distinct, ≤ 0, 0 among them (default 0, −2.5, −5).
+    oct_res: side of the octahedral map in texels (default 512).
+    net_resolution: (H, W) input size of the default network backend (None: the size its
+        weights were trained at, ``NetworkBackend``'s default).
+    supersample: rays per pixel side of the trace (default 1).
+    colour_space: space of the radiance field's colour, "srgb" or "linear"; None (default):
+        the PLY's recorded space, or "srgb" for a scene object.
+    n_lights: brightest regions reported as lights (``hdr.extract_lights``; default 3).
+    light_head: weights of the light head: "default" (the shipped ones, skipped with a
+        warning if absent), "none" (no head), or a file.
+    scene_label: the classifier of label "auto": "default" (the shipped one) or a model from
+        ``comgs train-scene-label``.
+    light_head_rows: the head reads the panorama at most this many rows (``head_factor``;
+        default 256; 0: no limit).
+    light_trust_brackets: in [0, 1], the brackets' vote on which clipped region holds the
+        head's power (``lights.add_lights``; default ``lights.TRUST_BRACKETS``).
+    background: step 1's learned sky behind the surfels: "auto" (default: the PLY's run
+        folder, if it has one), "none", or a run folder.
+    clipped_max_texels: step 1's record of clipped sky (``add_background``) is applied to its
+        connected parts of up to this many background texels (default inf: all; 0: none).
+    sun_from_shadows: "auto" (default): fit a sun to the scene's own cast shadows
+        (``lighting.sun_fit``) and add it where the panorama did not observe its direction;
+        "off".
+    sun_radius_deg: angular radius of the sun added from the shadows, in degrees, in (0, 10]
+        (default 1).
     """
     width: int = 1024
     height: int = 512
     max_hits: int = 32
     exclude_radius: float = 0.0
-    label: str = "auto"             # "auto": classified from the trace (``lighting.
-                                    # scene_label``; docs/lighting.md "The scene label"), or "outdoor",
-                                    # "indoor", "unknown"
+    label: str = "auto"
     evs: tuple = (0.0, -2.5, -5.0)
     oct_res: int = 512
     net_resolution: tuple | None = None
     supersample: int = 1
     colour_space: str | None = None
     n_lights: int = 3
-    light_head: str = "default"     # weights of the light head; "default": the shipped ones
-                                    # (skipped with a warning if absent); "none": no head
-    scene_label: str = "default"    # the classifier of label "auto": "default" the shipped
-                                    # one, or a model from ``comgs train-scene-label``
-    light_head_rows: int = 256      # the head reads the panorama at most this many rows
-                                    # (``head_factor``); 0: no limit
-    light_trust_brackets: float = TRUST_BRACKETS  # the brackets' vote on which
-                                    # clipped region holds the head's power (``add_lights``)
-    background: str = "auto"        # step 1's learned sky behind the surfels: "auto" (the
-                                    # PLY's run folder, if it has one), "none", or a folder
-    clipped_max_texels: float = float("inf")  # the step-1 record of clipped sky
-                                    # (``add_background``) is applied to its connected parts
-                                    # up to this many background texels (inf: all, 0: none)
-    sun_from_shadows: str = "auto"  # "auto": fit a sun to the scene's own cast shadows
-                                    # (``lighting.sun_fit``) and add it where the panorama
-                                    # did not observe its direction; "off"
-    sun_radius_deg: float = 1.0     # angular radius of the sun added from the shadows
+    light_head: str = "default"
+    scene_label: str = "default"
+    light_head_rows: int = 256
+    light_trust_brackets: float = TRUST_BRACKETS
+    background: str = "auto"
+    clipped_max_texels: float = float("inf")
+    sun_from_shadows: str = "auto"
+    sun_radius_deg: float = 1.0
 
     def validate(self) -> None:
         if self.label not in scene_label.LABEL_CHOICES:
@@ -151,7 +173,6 @@ class EstimateConfig:
                 or any(isinstance(v, bool) or int(v) != v or v < 1 for v in self.net_resolution)):
             raise ValueError(f"EstimateConfig.net_resolution must be two integers >= 1 (H, W), "
                              f"got {self.net_resolution!r}")
-
         if self.sun_from_shadows not in ("auto", "off"):
             raise ValueError(f"EstimateConfig.sun_from_shadows must be 'auto' or 'off', got "
                              f"{self.sun_from_shadows!r}")
@@ -223,33 +244,88 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     backend, ``lights`` (``hdr.extract_lights``), ``coverage`` (solid-angle fraction),
     ``lobes`` (the light head's added lobes), ``light_regions`` (every clipped region the
     head read and what it did there, ``lights.describe_regions``),
-    ``timings`` {load, trace, label, completion, fusion, light_head, octahedral, lights,
-    total} in seconds and ``meta``.
+    ``timings`` {load, trace, label, completion, fusion, light_head, sun_fit, octahedral,
+    lights, total} in seconds and ``meta``.
     Errors: see the module docstring.
+
+    Phases: load, trace, the observed part (:func:`_observed_trace`, :func:`_coverage_of`,
+    :func:`_report_sky`), label, completion, fusion, light head
+    (:func:`_apply_light_head`), sun from the shadows, octahedral map, lights, meta.
     """
     cfg = EstimateConfig() if cfg is None else cfg
     cfg.validate()
     check_model_files(cfg)                      # before the trace, not minutes into it
     t0 = time.perf_counter()
     timings = {}
+    scene, space, source = _open_scene(scene_or_ply_path, cfg.colour_space)
+    if backend is None:
+        backend = default_backend(resolution=cfg.net_resolution)
+    timings["load"] = time.perf_counter() - t0
+    with _timed(timings, "trace"):
+        trace = _trace(scene, position, cfg.panorama_config(space), source)
+    trace, n_bad, bg_dir = _observed_trace(trace, cfg, scene_or_ply_path)
+    rgb, normal, mask = backend_input(trace)
+    cov = _coverage_of(mask, trace, source, cfg.exclude_radius)
+    sky = _sky_fractions(trace, rgb, mask)
+    _report_sky(sky, _sky_fix(bg_dir, cfg.background, scene_or_ply_path))
+    with _timed(timings, "label"):
+        label, p_outdoor = _resolve_label(cfg, rgb, mask)
+    with _timed(timings, "completion"):
+        evs = tuple(float(e) for e in cfg.evs)
+        ldrs = backend.complete(rgb, normal, mask, evs=evs, label=LABELS[label])
+    with _timed(timings, "fusion"):
+        ldrs, radiance = _fuse(ldrs, evs, backend)
+    with _timed(timings, "light_head"):
+        head, radiance, lobes, regions, f = _apply_light_head(radiance, rgb, mask, trace, label,
+                                                               cfg)
+    with _timed(timings, "sun_fit"):
+        radiance, sun = _sun_from_shadows(scene, space, radiance, mask > 0.5, cfg,
+                                          sky["seen"] < hdr.SEEN_SKY_WARN)
+    with _timed(timings, "octahedral"):
+        oct_map = envmap.equirect_to_oct_np(radiance, int(cfg.oct_res)).astype(np.float32)
+    with _timed(timings, "lights"):
+        lights = _lights(radiance, int(cfg.n_lights))
+    timings["total"] = time.perf_counter() - t0
+    meta = _meta(cfg, source=source, trace=trace, label=label, p_outdoor=p_outdoor, evs=evs,
+                 backend=backend, space=space, coverage=cov, sky=sky, n_bad=n_bad, head=head,
+                 block=f, sun=sun, regions=regions)
+    return {"hdr": radiance, "oct": oct_map, "ldrs": ldrs,
+            "input": {"rgb": rgb, "normal": normal, "mask": mask},
+            "lights": lights, "lobes": lobes, "light_regions": regions, "coverage": cov,
+            "timings": timings, "meta": meta}
+
+
+@contextmanager
+def _timed(timings: dict, name: str):
+    """``timings[name]``: the seconds the ``with`` block took (not set if it raised)."""
+    t = time.perf_counter()
+    yield
+    timings[name] = time.perf_counter() - t
+
+
+def _open_scene(scene_or_ply_path, colour_space: str | None):
+    """(Mitsuba scene, colour space, source name) of a PLY path or a loaded scene."""
     if isinstance(scene_or_ply_path, (str, Path)):
         scene, space = load_scene(scene_or_ply_path)
         source = str(scene_or_ply_path)
     else:
         scene, space, source = scene_or_ply_path, "srgb", "<scene>"
-    space = cfg.colour_space or space
-    if backend is None:
-        backend = default_backend(resolution=cfg.net_resolution)
-    timings["load"] = time.perf_counter() - t0
+    return scene, colour_space or space, source
 
-    t = time.perf_counter()
+
+def _trace(scene, position, pcfg: PanoramaConfig, source: str) -> dict:
+    """``panorama.trace_panorama``; its ValueError (a bad position or exclusion radius)
+    re-raised with the scene and the position."""
     try:
-        trace = panorama.trace_panorama(scene, position, cfg.panorama_config(space))
+        return panorama.trace_panorama(scene, position, pcfg)
     except ValueError as exc:
         raise ValueError(f"estimate_light: cannot trace the scene {source} at "
                          f"{np.asarray(position).tolist()}: {exc}") from exc
-    timings["trace"] = time.perf_counter() - t
 
+
+def _observed_trace(trace: dict, cfg: EstimateConfig, scene_or_ply_path):
+    """(trace, non-finite pixel count, background run folder or None): the trace with its
+    non-finite pixels unobserved (warned) and step 1's learned sky behind the surfels."""
     trace, n_bad = sanitize_trace(trace)
     if n_bad:
         log.warning("estimate_light: %d traced pixels hold NaN/Inf (degenerate surfels?); "
@@ -257,80 +333,113 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     bg_dir = _background_dir(cfg.background, scene_or_ply_path)
     if bg_dir is not None:
         trace = add_background(trace, bg_dir, cfg.clipped_max_texels)
-    rgb, normal, mask = backend_input(trace)
+    return trace, n_bad, bg_dir
+
+
+def _coverage_of(mask, trace: dict, source: str, exclude_radius: float) -> float:
+    """The observed solid-angle fraction; ValueError when it is zero, a warning below
+    ``LOW_COVERAGE``."""
     cov = _coverage(mask)
     if cov <= 0.0:
         raise ValueError(
             f"estimate_light: zero coverage at {trace['meta']['position']}: no surfel of "
             f"{source} is visible from there ({trace['meta']['surfels']} traced, "
-            f"{trace['meta']['excluded']} excluded by exclude_radius={cfg.exclude_radius}). "
+            f"{trace['meta']['excluded']} excluded by exclude_radius={exclude_radius}). "
             f"Move the position, lower exclude_radius, or check the scene")
     if cov < LOW_COVERAGE:
         log.warning("estimate_light: coverage %.1f%% is below %.0f%% (the paper's tested "
                     "range); the completion is mostly guessed", 100 * cov, 100 * LOW_COVERAGE)
+    return cov
 
-    sky_seen = hdr.seen_sky_fraction(mask)
-    sky_clip = hdr.clipped_sky_fraction(rgb, mask)
+
+def _sky_fractions(trace: dict, rgb, mask) -> dict:
+    """Of the upper hemisphere: ``seen`` (observed at all), ``clipped`` (of the observed,
+    clipped at EV 0), ``open`` (step 1's learned background, the sky itself; None
+    without one)."""
+    seen = hdr.seen_sky_fraction(mask)
+    clipped = hdr.clipped_sky_fraction(rgb, mask)
     open_sky = (hdr.seen_sky_fraction(trace["background_alpha"])
                 if "background_alpha" in trace else None)
-    if open_sky is not None:
-        log.info("estimate_light: %.1f%% of the upper hemisphere is observed, %.1f%% is open "
-                 "sky (step 1's learned background), the rest surfaces", 100 * sky_seen,
-                 100 * open_sky)
-    if sky_seen < hdr.SEEN_SKY_WARN:
-        if bg_dir is not None:
-            fix = "add views that see the sky, or give the map (compose --env)"
-        elif cfg.background == "none" and _background_dir("auto", scene_or_ply_path):
-            fix = "the run has a learned sky that background 'none' left out: use the default " \
-                  "background 'auto'"
-        else:
-            fix = "if the capture saw the sky, reconstruct with --background env (step 1 " \
-                  "keeps no sky without it); else add sky views or give the map (compose --env)"
-        log.warning("estimate_light: the capture saw %.1f%% of the upper hemisphere (sky, "
-                    "ceiling, anything above the horizon) at the placement (warned below "
-                    "%.0f%%): the lights up there are the completion's guess (measured through "
-                    "step 1 without sky views: E(sun)/E(up) 23-81%% low, the light 40-46 deg "
-                    "off), but for a sun the scene's cast shadows show (sun_from_shadows, "
-                    "reported next; the demo without sky views: 3.5 deg off, the sky's power "
-                    "still 0.57x); %s", 100 * sky_seen, 100 * hdr.SEEN_SKY_WARN, fix)
-    elif open_sky is not None and open_sky < hdr.OPEN_SKY_WARN:
-        log.warning("estimate_light: of the upper hemisphere, %.1f%% is seen at the placement "
-                    "but only %.1f%% is open sky (step 1's learned background; warned below "
-                    "%.0f%%): the rest is surfels. If the scene is outdoors, the placement looks "
-                    "up through surfels the cameras saw against the sky (measured on "
-                    "forward-facing captures with 2-3%% open sky: the light 35-141 deg "
-                    "off, E(sun)/E(up) 37-84%% low); give the map (compose --env) or capture "
-                    "views that look around", 100 * sky_seen, 100 * open_sky,
-                    100 * hdr.OPEN_SKY_WARN)
-    elif sky_clip > hdr.CLIPPED_SKY_WARN:
-        log.warning("estimate_light: %.1f%% of the observed sky is clipped at EV 0 (warned "
-                    "above %.0f%%): its light's power, and where in it the light is, cannot be "
-                    "read from one exposure (measured through step 1: E(sun)/E(up) off by "
-                    "31-35%% there); a "
-                    "capture exposed for the sky avoids it", 100 * sky_clip,
-                    100 * hdr.CLIPPED_SKY_WARN)
+    return {"seen": seen, "clipped": clipped, "open": open_sky}
 
-    t = time.perf_counter()
+
+def _sky_fix(bg_dir, background: str, scene_or_ply_path) -> str:
+    """What to do about a sky the capture barely saw, given where the sky came from."""
+    if bg_dir is not None:
+        return "add views that see the sky, or give the map (compose --env)"
+    if background == "none" and _background_dir("auto", scene_or_ply_path):
+        return "the run has a learned sky that background 'none' left out: use the default " \
+               "background 'auto'"
+    return "if the capture saw the sky, reconstruct with --background env (step 1 " \
+           "keeps no sky without it); else add sky views or give the map (compose --env)"
+
+
+def _report_sky(sky: dict, fix: str) -> None:
+    """Log how much of the sky the trace holds, and :func:`sky_warning`'s warning if any."""
+    if sky["open"] is not None:
+        log.info("estimate_light: %.1f%% of the upper hemisphere is observed, %.1f%% is open "
+                 "sky (step 1's learned background), the rest surfaces", 100 * sky["seen"],
+                 100 * sky["open"])
+    warning = sky_warning(sky["seen"], sky["open"], sky["clipped"], fix)
+    if warning:
+        log.warning(warning)
+
+
+def sky_warning(seen: float, open_sky: float | None, clipped: float, fix: str) -> str | None:
+    """The warning about the sky at the placement, or None: the capture saw too little of
+    the upper hemisphere (below ``hdr.SEEN_SKY_WARN``; ``fix`` says what to do), or little
+    of what it saw is open sky (below ``hdr.OPEN_SKY_WARN``), or too much of the observed
+    sky is clipped at EV 0 (above ``hdr.CLIPPED_SKY_WARN``). Fractions in [0, 1]."""
+    if seen < hdr.SEEN_SKY_WARN:
+        return ("estimate_light: the capture saw %.1f%% of the upper hemisphere (sky, "
+                "ceiling, anything above the horizon) at the placement (warned below "
+                "%.0f%%): the lights up there are the completion's guess (measured through "
+                "step 1 without sky views: E(sun)/E(up) 23-81%% low, the light 40-46 deg "
+                "off), but for a sun the scene's cast shadows show (sun_from_shadows, "
+                "reported next; the demo without sky views: 3.5 deg off, the sky's power "
+                "still 0.57x); %s" % (100 * seen, 100 * hdr.SEEN_SKY_WARN, fix))
+    if open_sky is not None and open_sky < hdr.OPEN_SKY_WARN:
+        return ("estimate_light: of the upper hemisphere, %.1f%% is seen at the placement "
+                "but only %.1f%% is open sky (step 1's learned background; warned below "
+                "%.0f%%): the rest is surfels. If the scene is outdoors, the placement looks "
+                "up through surfels the cameras saw against the sky (measured on "
+                "forward-facing captures with 2-3%% open sky: the light 35-141 deg "
+                "off, E(sun)/E(up) 37-84%% low); give the map (compose --env) or capture "
+                "views that look around" % (100 * seen, 100 * open_sky,
+                                            100 * hdr.OPEN_SKY_WARN))
+    if clipped > hdr.CLIPPED_SKY_WARN:
+        return ("estimate_light: %.1f%% of the observed sky is clipped at EV 0 (warned "
+                "above %.0f%%): its light's power, and where in it the light is, cannot be "
+                "read from one exposure (measured through step 1: E(sun)/E(up) off by "
+                "31-35%% there); a "
+                "capture exposed for the sky avoids it" % (100 * clipped,
+                                                           100 * hdr.CLIPPED_SKY_WARN))
+    return None
+
+
+def _resolve_label(cfg: EstimateConfig, rgb, mask) -> tuple[str, float | None]:
+    """(label, p(outdoor) or None): ``cfg.label``, or with "auto" the classifier's answer."""
     label, p_outdoor = scene_label.resolve_label(
         cfg.label, rgb, mask, None if cfg.scene_label == "default" else cfg.scene_label)
     if p_outdoor is not None:
         log.info("estimate_light: label 'auto' -> %r (p(outdoor) = %.2f)", label, p_outdoor)
-    timings["label"] = time.perf_counter() - t
+    return label, p_outdoor
 
-    t = time.perf_counter()
-    evs = tuple(float(e) for e in cfg.evs)
-    ldrs = backend.complete(rgb, normal, mask, evs=evs, label=LABELS[label])
-    timings["completion"] = time.perf_counter() - t
 
-    t = time.perf_counter()
+def _fuse(ldrs: dict, evs: tuple, backend) -> tuple[dict, np.ndarray]:
+    """(completions as float32 {ev: [H, W, 3]}, their HDR fusion [H, W, 3]); ValueError
+    when the backend's output does not fuse to finite values."""
     ldrs = {float(k): np.asarray(v, np.float32) for k, v in ldrs.items()}
     radiance = np.asarray(hdr.fuse_brackets(ldrs, evs), np.float32)              # [H, W, 3]
     if not np.isfinite(radiance).all():
         raise ValueError(f"estimate_light: the backend {type(backend).__name__} produced "
                          f"non-finite values")
-    timings["fusion"] = time.perf_counter() - t
+    return ldrs, radiance
 
-    t = time.perf_counter()
+
+def _apply_light_head(radiance, rgb, mask, trace: dict, label: str, cfg: EstimateConfig):
+    """(head or None, radiance, lobes, regions, block size f): the light head's power added
+    to the lights clipped at EV 0, read from the panorama in f×f blocks (``head_factor``)."""
     head = _load_head(cfg.light_head)
     lobes, regions, f = [], [], 1
     if head is not None:
@@ -344,45 +453,42 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
                                                 trust_brackets=cfg.light_trust_brackets)
         radiance = radiance.astype(np.float32)
         regions = light_head.describe_regions(pred, before, radiance, cfg.light_trust_brackets)
-    timings["light_head"] = time.perf_counter() - t
+    return head, radiance, lobes, regions, f
 
-    t = time.perf_counter()
-    radiance, sun = _sun_from_shadows(scene, space, radiance, mask > 0.5, cfg,
-                                      sky_seen < hdr.SEEN_SKY_WARN)
-    timings["sun_fit"] = time.perf_counter() - t
 
-    t = time.perf_counter()
-    oct_map = envmap.equirect_to_oct_np(radiance, int(cfg.oct_res)).astype(np.float32)
-    timings["octahedral"] = time.perf_counter() - t
-    t = time.perf_counter()
-    lights = hdr.extract_lights(radiance, k=int(cfg.n_lights))
+def _lights(radiance, n: int) -> list[dict]:
+    """The ``n`` brightest regions (``hdr.extract_lights``), each marked ``above_white``
+    where its peak is above the EV-0 white (1): a light, where a white wall stays below."""
+    lights = hdr.extract_lights(radiance, k=n)
     for l in lights:             # the brightest regions need not be lights: a white wall
         l["above_white"] = bool(l["peak_luminance"] > 1.0)     # EV-0 white = 1 (its peak:
                                                                # a region can take in a wall)
-    timings["lights"] = time.perf_counter() - t
-    timings["total"] = time.perf_counter() - t0
+    return lights
 
+
+def _meta(cfg: EstimateConfig, *, source, trace, label, p_outdoor, evs, backend, space,
+          coverage, sky, n_bad, head, block, sun, regions) -> dict:
+    """The result's ``meta`` (what was asked, found and done); warns when the strongest
+    clipped light is a near tie with the next (where shadows point is then uncertain)."""
     meta = {"source": source, "position": trace["meta"]["position"], "label": label,
             "label_requested": cfg.label, "p_outdoor": p_outdoor,
             "evs": list(evs), "backend": _backend_name(backend), "colour_space": space,
-            "coverage": cov, "seen_sky_fraction": sky_seen, "open_sky_fraction": open_sky,
-            "clipped_sky_fraction": sky_clip, "nonfinite_pixels": n_bad,
+            "coverage": coverage, "seen_sky_fraction": sky["seen"],
+            "open_sky_fraction": sky["open"], "clipped_sky_fraction": sky["clipped"],
+            "nonfinite_pixels": n_bad,
             "saturation_limit": hdr.saturation_limit(evs), "config": _config_dict(cfg),
             "trace": jsonable(trace["meta"]), "radiance": "linear",
             "layout": {"hdr": "equirect", "oct": "octahedral"}}
     meta["light_head"] = None if head is None else str(cfg.light_head)
     meta["scene_label_model"] = str(cfg.scene_label) if p_outdoor is not None else None
     meta["light_trust_brackets"] = None if head is None else float(cfg.light_trust_brackets)
-    meta["light_head_block"] = f             # the head read the panorama in f×f blocks
+    meta["light_head_block"] = block         # the head read the panorama in f×f blocks
     meta["sun_from_shadows"] = sun
     dom = meta["light_dominance"] = light_head.dominance(regions)
     if dom is not None and dom < light_head.DOMINANCE_MARGIN:
         log.warning("estimate_light: the strongest observed clipped light is %.2fx the next: "
                     "which dominates, so where shadows point, is a near tie", dom)
-    return {"hdr": radiance, "oct": oct_map, "ldrs": ldrs,
-            "input": {"rgb": rgb, "normal": normal, "mask": mask},
-            "lights": lights, "lobes": lobes, "light_regions": regions, "coverage": cov,
-            "timings": timings, "meta": meta}
+    return meta
 
 
 def _sun_from_shadows(scene, space: str, radiance, observed, cfg: EstimateConfig,
@@ -481,14 +587,7 @@ def head_factor(trace: dict, max_rows: int = 0) -> int:
     The record knows clipping only at the capture's pixel size, and the head reads a region's
     size in panorama pixels (trained on panoramas where a sun is 1–4 pixels), so the panorama
     is coarsened until its pixels are about the capture's (``lights.downsample_clipped``).
-    ``benchmarks/recon_light_e2e.py``, 64-px captures (0.65° pixels): at 1024×512 the sunrise
-    sun's 0.003 sr region is 83 pixels and the head predicted 36–41× where the truth is 62×;
-    at 512×256 (20 pixels) 55× of 86×.
-
-    ``max_rows`` (``EstimateConfig.light_head_rows``, 256): the head is least accurate at 512
-    rows. ``benchmarks/light_head_rows.py`` (the 5 held-out maps at 1024×512, 6 draws each,
-    the mean |log(predicted / true power)| of the clipped regions): 0.64 with the head at 512
-    rows, 0.55 / 0.55 / 0.64 at 256 / 128 / 64 (blender_sunrise −0.96 at 512, −0.30 at 256).
+    ``max_rows``: ``EstimateConfig.light_head_rows`` (default 256).
     """
     h, w = trace["alpha"].shape
     f = 1
@@ -506,13 +605,7 @@ def small_parts(clipped: np.ndarray, max_sr: float) -> np.ndarray:
     """The record ``clipped`` [H, W, 3] (equirect) kept only in its connected parts (≥ ½ in
     any channel, ``hdr.label_equirect``) of solid angle ≤ ``max_sr``; zero elsewhere.
 
-    An option, off by default (inf). It was the default while the record was kept per
-    texel: a 1.6° texel record joined patches of bright sky into one 0.5–1.5 sr region whose
-    gain the light head over-predicted (forest_slope 5.4× vs 2.7×, dominant light 76° off).
-    With the record kept per ray (the capture's own pixels) a 16-texel limit measured no
-    better (``benchmarks/recon_light_e2e.py``, 7 maps, E(sun)/E(up) within 25 % on 5 and 5 at
-    512×256, 4 and 4 at 1024×512) and turned forest_slope's dominant light 54° away (5°
-    with the whole record)."""
+    Off by default (``EstimateConfig.clipped_max_texels`` inf: the whole record is kept)."""
     if not np.isfinite(max_sr):
         return clipped
     on = clipped.max(-1) >= 0.5                                                  # [H, W]
@@ -560,3 +653,129 @@ def _load_head(spec: str):
 def _backend_name(backend) -> str:
     kind = getattr(backend, "kind", None) or getattr(backend, "name", None)
     return type(backend).__name__ + (f"({kind})" if kind else "")
+
+
+# ---------------------------------------------------------------------------------------
+# The completion backend of `comgs estimate-light`
+
+@dataclass
+class BackendConfig:
+    """The completion model of ``comgs estimate-light`` (``lighting.backends``).
+
+    backend: "net+sh" (default: the shipped weights, their hole averaged with the SH fill,
+        outdoors the weights' luminance in the average's colour), "net" (the weights alone),
+        the fills "mean", "push_pull", "sh", or "diffusers".
+    weights: completion-net checkpoint of backends net+sh and net (None: the shipped one).
+    diffusers_dir: local diffusers inpainting model (backend diffusers); prompt embeddings
+        come from its text encoder or DIR/ev_embeddings.pt ({'xi_b': [L, D], 'xi_d': [L, D]}).
+    steps: diffusion steps of backend diffusers (default 30).
+    """
+    backend: str = "net+sh"
+    weights: str | None = None
+    diffusers_dir: str | None = None
+    steps: int = 30
+
+
+def make_backend(cfg: BackendConfig, net_resolution: tuple | None = None) -> CompletionBackend:
+    """The completion backend ``cfg`` names; ``net_resolution`` (H, W): the network's input
+    size (None: the size its weights were trained at). ValueError for a setting the backend
+    would ignore (named by its ``estimate-light`` flag) or one it lacks."""
+    net = cfg.backend in ("net", "net+sh")
+    for flag, value, applies in (("--weights", cfg.weights, net),
+                                 ("--net-resolution", net_resolution, net),
+                                 ("--diffusers-dir", cfg.diffusers_dir,
+                                  cfg.backend == "diffusers")):
+        if value is not None and not applies:
+            raise ValueError(f"{flag} does not apply to --backend {cfg.backend}")
+    if net:
+        res = tuple(net_resolution) if net_resolution else None
+        model = backends.load_network_backend(cfg.weights, res)
+        return model if cfg.backend == "net" else backends.net_sh_blend(model)
+    if cfg.backend == "diffusers":
+        if not cfg.diffusers_dir:
+            raise ValueError("--backend diffusers needs --diffusers-dir DIR")
+        return backends.DiffusersBackend.from_dir(cfg.diffusers_dir, steps=cfg.steps)
+    return backends.FillBackend(cfg.backend)
+
+
+# ---------------------------------------------------------------------------------------
+# The light of each object of `comgs compose` (without --env)
+
+@dataclass
+class PlacementEstimateConfig:
+    """How ``comgs compose`` estimates the light at each object's centre: the
+    :class:`EstimateConfig` fields it sets (the others keep their defaults) and the
+    completion weights.
+
+    label: "auto" (default), "outdoor", "indoor" or "unknown" (``EstimateConfig.label``).
+    scene_label: the classifier of label "auto" ("default": the shipped one).
+    light_head: "default" (the shipped one), "none", or a file.
+    sun_from_shadows: "auto" (default) or "off".
+    weights: completion-net checkpoint (None: the shipped one, its hole averaged with the SH
+        fill, ``backends.default_backend``).
+    """
+    label: str = "auto"
+    scene_label: str = "default"
+    light_head: str = "default"
+    sun_from_shadows: str = "auto"
+    weights: str | None = None
+
+
+# the settings of PlacementEstimateConfig as `comgs compose` spells them, in the order a
+# conflict with --env is reported
+_PLACEMENT_FLAGS = (("label", "--label"), ("scene_label", "--scene-label"),
+                    ("weights", "--weights"), ("light_head", "--light-head"),
+                    ("sun_from_shadows", "--sun-from-shadows"))
+
+
+def placement_estimator(scene_run, out, env=None, say: Callable[[str], object] = log.info,
+                        **settings) -> PlacementEstimator | None:
+    """The ``estimator`` of ``stages.compose.compose``: None when ``env`` (one map lighting
+    every object) is given, which no estimation ``settings`` may go with (ValueError);
+    else a :class:`PlacementEstimator` with ``PlacementEstimateConfig(**settings)``.
+
+    >>> est = placement_estimator("runs/scene", "comp", label="outdoor")   # doctest: +SKIP
+    >>> compose("runs/scene", objects, "transform.json", "comp", estimator=est)  # doctest: +SKIP
+    """
+    if env is not None:
+        for field, flag in _PLACEMENT_FLAGS:
+            if field in settings:
+                raise ValueError(f"{flag} sets up the lighting estimation; with --env the map "
+                                 f"is the light and nothing is estimated")
+        return None
+    return PlacementEstimator(scene_run, out, PlacementEstimateConfig(**settings), say)
+
+
+class PlacementEstimator:
+    """``estimator(world position [3], object name) -> equirect radiance [H, W, 3]``:
+    :func:`estimate_light` on the scene run's ``point_cloud.ply`` at the position, its files
+    written to ``OUT/env/<name>_estimate/<name>.exr`` (:func:`write_outputs`) and named
+    through ``say``. The settings and model files are checked when it is made, before
+    anything is traced."""
+
+    def __init__(self, scene_run, out, cfg: PlacementEstimateConfig,
+                 say: Callable[[str], object] = log.info):
+        self.scene_ply = str(Path(scene_run) / "point_cloud.ply")
+        self.out, self.say = Path(out), say
+        self.cfg = EstimateConfig(label=cfg.label or "auto",       # an empty value: the default
+                                  scene_label=cfg.scene_label or "default",
+                                  light_head=cfg.light_head or "default",
+                                  sun_from_shadows=cfg.sun_from_shadows or "auto")
+        self.cfg.validate()
+        check_model_files(self.cfg)
+        if cfg.weights is not None and not Path(cfg.weights).is_file():
+            raise FileNotFoundError(f"--weights: completion weights not found: {cfg.weights} "
+                                    f"(or estimate the map with `comgs estimate-light "
+                                    f"--backend push_pull` and give it as --env)")
+        self.backend = (backends.default_backend() if cfg.weights is None else
+                        backends.net_sh_blend(backends.load_network_backend(cfg.weights)))
+
+    def __call__(self, pos, name: str) -> np.ndarray:
+        r = estimate_light(self.scene_ply, pos, self.cfg, self.backend)
+        at = np.round(np.asarray(pos, float), 3).tolist()
+        if r["meta"].get("p_outdoor") is not None:       # each placement is classified
+            self.say(f"lighting at {at}: label "
+                     f"auto -> {r['meta']['label']} (p(outdoor) {r['meta']['p_outdoor']:.2f})")
+        paths = write_outputs(r, self.out / "env" / f"{name}_estimate" / f"{name}.exr")
+        self.say(f"lighting of {name!r} at {at}: {paths['json']}, {paths['preview']}")
+        return r["hdr"]
