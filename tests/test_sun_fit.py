@@ -171,3 +171,21 @@ def test_rescale_seen_sun_sets_its_irradiance_per_channel():
     e_sun = np.einsum("hwc,hw->c", out - rest, np.maximum(dirs @ d, 0) * solid_angle_image(h, w))
     np.testing.assert_allclose(e_sun / sf.up_irradiance(rest), k, rtol=1e-3)
     np.testing.assert_array_equal(out[~disk], pano[~disk].astype(np.float32))
+
+
+def test_estimate_light_rescales_a_clipped_seen_sun_and_keeps_a_measured_one():
+    from comgs_dr.core.equirect import equirect_directions
+    from comgs_dr.stages.estimate_light import _seen_sun
+    sc, p = _scene(True)
+    receivers = sf.scene_receivers(sc, p, "srgb", CFG)
+    h, w = 64, 128
+    dirs = equirect_directions(h, w)
+    pano = np.where(dirs[..., 2:3] > 0, [0.4, 0.5, 0.7], 0.1) * np.ones(3)
+    sun = (dirs @ SUN) > np.cos(np.radians(4))
+    pano[sun] = 50.0
+    ldr = np.clip(pano / 4.0, 0.0, 1.0)                      # the sun clips at EV 0
+    out, rec, what = _seen_sun(pano, receivers, SUN, ldr)
+    assert what.startswith("rescaled") and rec["usable"]
+    assert not np.array_equal(out, pano)
+    kept, rec, what = _seen_sun(pano, receivers, SUN, ldr * 0.5)  # below white: measured
+    assert kept is pano and rec is None and "not clipped" in what

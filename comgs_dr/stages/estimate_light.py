@@ -48,7 +48,7 @@ from typing import Callable
 import mitsuba as mi
 import numpy as np
 
-from comgs_dr.core.equirect import coverage, pixel_solid_angles
+from comgs_dr.core.equirect import coverage, equirect_directions, pixel_solid_angles
 from comgs_dr.lighting import backends, envmap, hdr, scene_label, sun_fit
 from comgs_dr.lighting import lights as light_head
 from comgs_dr.lighting.lights import TRUST_BRACKETS
@@ -280,7 +280,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
                                                                cfg)
     with _timed(timings, "sun_fit"):
         radiance, sun = _sun_from_shadows(scene, space, radiance, mask > 0.5, cfg,
-                                          sky["seen"] < hdr.SEEN_SKY_WARN)
+                                          sky["seen"] < hdr.SEEN_SKY_WARN, ldr=rgb)
     with _timed(timings, "octahedral"):
         oct_map = envmap.equirect_to_oct_np(radiance, int(cfg.oct_res)).astype(np.float32)
     with _timed(timings, "lights"):
@@ -492,25 +492,52 @@ def _meta(cfg: EstimateConfig, *, source, trace, label, p_outdoor, evs, backend,
 
 
 def _sun_from_shadows(scene, space: str, radiance, observed, cfg: EstimateConfig,
-                      loud: bool = False):
+                      loud: bool = False, ldr=None):
     """(radiance, record): the panorama with the sun fitted to the scene's cast shadows
-    added where it did not observe it (``lighting.sun_fit``), and what was found and done
-    (None when off). ``loud``: say it as a warning (the capture barely saw the sky)."""
+    (``lighting.sun_fit``), and what was found and done (None when off). A sun the
+    panorama did not observe is added; a sun it saw clipped in ``ldr`` (the EV-0 display
+    trace [H, W, 3]) keeps its direction and gets its power and colour from the shadows
+    toward it (a clipped sun's are the light head's guess); a sun it saw unclipped is
+    kept. ``loud``: say it as a warning (the capture barely saw the sky)."""
     say = log.warning if loud else log.info
     if cfg.sun_from_shadows == "off":
         return radiance, None
     shapes = [sh for sh in scene.shapes() if hasattr(sh, "params")]
     if len(shapes) != 1:
         return radiance, {"action": f"skipped: {len(shapes)} surfels shapes (one expected)"}
-    fit = sun_fit.fit_sun_in_scene(scene, shapes[0].params, space)
+    receivers = sun_fit.scene_receivers(scene, shapes[0].params, space)
+    fit = sun_fit.fit_sun(*receivers)
     rec = fit.as_dict()
     if not fit.usable:
         say("estimate_light: no sun from the scene's shadows: %s", fit.reason)
         rec["action"] = "none: " + fit.reason
         return radiance, rec
-    radiance, rec["action"] = sun_fit.add_sun(radiance, observed, fit, cfg.sun_radius_deg)
+    seen = sun_fit.seen_sun(radiance, observed, fit.direction)
+    if seen is not None and ldr is not None:
+        radiance, rec["seen"], rec["action"] = _seen_sun(radiance, receivers, seen, ldr)
+    else:
+        radiance, rec["action"] = sun_fit.add_sun(radiance, observed, fit, cfg.sun_radius_deg)
     say("estimate_light: sun from the scene's shadows (%s): %s", fit.reason, rec["action"])
     return np.asarray(radiance, np.float32), rec
+
+
+#: EV-0 display value from which a seen sun counts as clipped (its power then guessed)
+SUN_CLIPPED = 0.98
+
+
+def _seen_sun(radiance, receivers, direction, ldr):
+    """(radiance, record of the fit toward the seen sun or None, action) for a sun the
+    panorama observed at ``direction``: rescaled to the shadows' k per channel when it was
+    clipped in ``ldr`` and its shadow is evidence, else kept."""
+    h, w = ldr.shape[:2]
+    near = equirect_directions(h, w) @ direction >= np.cos(np.radians(3.0))
+    if not (np.asarray(ldr)[near].max(-1) >= SUN_CLIPPED).any():
+        return radiance, None, "kept: the panorama measured the sun (not clipped)"
+    at = sun_fit.fit_sun(*receivers, direction=direction)
+    if not at.usable:
+        return radiance, at.as_dict(), "kept the seen sun's guessed power: " + at.reason
+    radiance, action = sun_fit.rescale_seen_sun(radiance, at)
+    return radiance, at.as_dict(), action
 
 
 def _background_dir(spec: str, source) -> Path | None:
