@@ -479,7 +479,7 @@ def test_compose_cache_recomputes_only_what_a_moved_object_touches(tmp_path, cap
     assert "probes of 'a' are not baked" in capsys.readouterr().err
     assert main(["render-comp", str(out), "--cameras", str(cams_json), "--variant", "paste",
                  "--material", "a:albedo=1,0,0", "--quiet"]) == 2
-    assert "--material does not apply to --variant paste" in capsys.readouterr().err
+    assert "material overrides do not apply to variant 'paste'" in capsys.readouterr().err
     # placement errors name the object
     (tmp_path / "bad.json").write_text(json.dumps({"a": {"transform": np.diag([1, 2, 1, 1.0]).ravel().tolist()},
                                                    "b": {"location": [0, 0, 0]}}))

@@ -527,8 +527,10 @@ def test_head_factor_matches_the_capture_pixel():
 
 
 def test_compose_cli_reports_each_placements_auto_label(monkeypatch, tmp_path, capsys):
-    """``comgs compose`` without --env: the estimator it hands to the stage runs
-    ``estimate_light`` with --label and prints the classifier's answer per placement."""
+    """``comgs compose`` without --env: the estimator it hands to the stage
+    (``stages.estimate_light.PlacementEstimator``) runs ``estimate_light`` with --label and
+    prints the classifier's answer per placement."""
+    import comgs_dr.stages.estimate_light as E
     from comgs_dr.cli import composition as C
     from comgs_dr.cli import main
     calls, heads, suns = [], [], []
@@ -553,10 +555,10 @@ def test_compose_cli_reports_each_placements_auto_label(monkeypatch, tmp_path, c
         written.append(path)
         return {"json": path.with_suffix(".json"), "preview": path.with_name("p.png")}
 
-    monkeypatch.setattr(C, "estimate_light", fake_estimate)
-    monkeypatch.setattr(C, "write_outputs", fake_write)
+    monkeypatch.setattr(E, "estimate_light", fake_estimate)
+    monkeypatch.setattr(E, "write_outputs", fake_write)
     monkeypatch.setattr(C, "compose", fake_compose)
-    monkeypatch.setattr(C.backends, "default_backend", lambda **kw: None)
+    monkeypatch.setattr(E.backends, "default_backend", lambda **kw: None)
     args = ["compose", str(tmp_path / "scene"), "--object", f"a={tmp_path / 'obj'}",
             "--placement", str(tmp_path / "p.json"), "--out", str(tmp_path / "out"), "--quiet"]
     assert main(args) == 0

@@ -15,7 +15,8 @@ from comgs_dr.data.images import to_u8
 from comgs_dr.lighting import envmap
 from comgs_dr.lighting import lights as light_head
 
-__all__ = ["output_paths", "write_outputs", "preview_image", "jsonable", "sky_text"]
+__all__ = ["output_paths", "write_outputs", "preview_image", "jsonable", "sky_text",
+           "summary_text"]
 
 
 jsonable = runlog.json_safe          # numpy to Python, non-finite floats to None (strict JSON)
@@ -72,15 +73,45 @@ def write_outputs(result: dict, out_path) -> dict:
 
 def sky_text(meta: dict) -> str:
     """"upper hemisphere seen X% [(open sky Z%)], of it clipped Y%" when the meta holds
-    them, else "" (the preview's mask title and ``estimate-light``'s printout). ``seen_sky_fraction`` counts whatever is observed above the horizon (a
-    wall, a ceiling, floaters); ``open_sky_fraction``, when step 1 learned a background, the
-    share of it that is that background (the sky itself)."""
+    them, else "" (the preview's mask title and ``estimate-light``'s printout).
+    ``seen_sky_fraction`` counts whatever is observed above the horizon (a wall, a ceiling,
+    floaters); ``open_sky_fraction``, when step 1 learned a background, the share of it
+    that is that background (the sky itself)."""
     if meta.get("seen_sky_fraction") is None or meta.get("clipped_sky_fraction") is None:
         return ""
     sky = meta.get("open_sky_fraction")
     sky = "" if sky is None else f" (open sky {100 * sky:.1f}%)"
     return (f"upper hemisphere seen {100 * meta['seen_sky_fraction']:.1f}%{sky}, of it "
             f"clipped {100 * meta['clipped_sky_fraction']:.1f}%")   # as the warnings print them
+
+
+def summary_text(result: dict, paths: dict) -> str:
+    """What ``comgs estimate-light`` prints of a result and its written ``paths``: coverage,
+    backend and lights, the sky (:func:`sky_text`), the classifier's label, what the light
+    head did in each clipped region, the dominance of the strongest light, the timings."""
+    meta = result["meta"]
+    hot = sum(bool(l.get("above_white")) for l in result["lights"])
+    lines = [f"coverage {100 * result['coverage']:.1f}%, backend {meta['backend']}, "
+             f"{len(result['lights'])} brightest region(s), {hot} of them above the EV-0 white "
+             f"level (lights), peak radiance {float(result['hdr'].max()):.3g}",
+             sky_text(meta)]
+    if meta.get("p_outdoor") is not None:
+        lines.append(f"label auto -> {meta['label']} (p(outdoor) {meta['p_outdoor']:.2f})")
+    for i, g in enumerate(result.get("light_regions", [])):     # what the light head did
+        el = float(np.degrees(np.arcsin(np.clip(g["direction"][2], -1.0, 1.0))))
+        lines.append(f"clipped region {i}: {g['solid_angle']:.4g} sr at elevation {el:+.1f}°, "
+                     f"gain {g['gain']:.3g}, power {g['predicted_power']:.3g} (after the "
+                     f"brackets' vote {g['voted_power']:.3g}), map {g['brackets_power']:.3g} "
+                     f"-> {g['power']:.3g} ({g['action']})")
+    dom = meta.get("light_dominance")
+    if dom is not None:
+        lines.append(f"strongest observed clipped light: {dom:.2f}x the next"
+                     + (" (a near tie: see light_head_regions in the JSON)"
+                        if dom < light_head.DOMINANCE_MARGIN else ""))
+    lines.append(f"{'step':<12}{'seconds':>10}")
+    lines += [f"{k:<12}{v:>10.3f}" for k, v in result["timings"].items()]
+    lines.append("wrote " + ", ".join(str(p) for p in paths.values()))
+    return "\n".join(lines)
 
 
 def preview_image(result: dict, panel_width: int = 512):

@@ -45,6 +45,7 @@ import torch
 from tqdm import tqdm
 
 from comgs_dr.core import colorspace, equirect, runlog
+from comgs_dr.core.config import add_config_arguments, config_overrides, shared_options
 from comgs_dr.core.variant import set_variant
 from comgs_dr.data import pano_masks
 from comgs_dr.data.synthetic import shared_data_dir
@@ -62,10 +63,41 @@ HELD_OUT = P.HELD_OUT
 
 @dataclass
 class TrainCompletionConfig:
-    out: Path = Path("out/completion.pt")     # not the shipped DEFAULT_WEIGHTS: pass that
-                                               # path to replace them
+    """Settings of :func:`train`.
+
+    out: the weights file (default ``out/completion.pt``; the shipped
+        ``backends.DEFAULT_WEIGHTS`` are replaced only when named here); beside it
+        ``<stem>.json`` (the model card), ``<stem>.ckpt.pt`` (the checkpoint), the metrics log.
+    data_dir: folder of the generated training set (``completion_data.npz``, reused while
+        the data settings match).
+    maps_dir: folder of real .hdr/.exr maps (None: ``shared/data/hdri`` beside the
+        checkout); held_out: the file stems of the maps never trained on.
+    height, width: panorama size in pixels, 2:1, height a multiple of 16 (default 64 × 128).
+    n_sky, n_rooms, n_masks: sunsky skies, path-traced rooms (``room_spp`` samples per
+        pixel) and traced surfel masks generated (default 300, 150, 400; 64 spp).
+    minutes: time budget of the training (default 45); max_steps: step limit (100000).
+    step1_frac: fraction of the budget spent on EV-0 completion before the EV-conditioned
+        step (default 0.55).
+    batch, lr, warmup: batch size, peak learning rate and its linear warm-up in steps
+        (default 8, 1e-3, 200).
+    aug_ev: the EV shift augmentation, e_aug ~ U[−aug_ev, aug_ev] (default 1.5).
+    wb_jitter: std of the log per-channel white-balance gain (default 0.1).
+    init: weights to start from (fine-tuning; None: from scratch).
+    lowfreq: weight of each block-averaged (low-frequency) L1 term of ``completion_loss``
+        (default 0.5).
+    base_channels: width of the U-Net's first level (default 24).
+    prior: "none" (default: the network predicts the panorama, as the shipped weights do)
+        or "push_pull" (a residual on the push-pull fill).
+    seed, threads: random seed and torch threads (default 0, 2).
+    source_probs: probabilities of drawing a Poly Haven map, a sky, a room (default 0.3,
+        0.35, 0.35).
+    net: more ``completion.CompletionConfig`` fields.
+    checkpoint_every, checkpoint_every_s: checkpoint every this many steps and seconds of
+        wall time (default 200 and 300; also on SIGINT/SIGTERM).
+    """
+    out: Path = Path("out/completion.pt")
     data_dir: Path = Path("out/completion_data")
-    maps_dir: Path | None = None           # default: shared/data/hdri beside the checkout
+    maps_dir: Path | None = None
     held_out: tuple = HELD_OUT
     height: int = 64
     width: int = 128
@@ -80,19 +112,15 @@ class TrainCompletionConfig:
     lr: float = 1e-3
     warmup: int = 200
     aug_ev: float = 1.5
-    wb_jitter: float = 0.1                 # std of the log per-channel white-balance gain
-    init: Path | None = None               # weights to start from (fine-tuning)
-    lowfreq: float = 0.5                   # weight of each low-frequency term of completion_loss
+    wb_jitter: float = 0.1
+    init: Path | None = None
+    lowfreq: float = 0.5
     base_channels: int = 24
-    # "push_pull": a residual on the push-pull fill. Measured (benchmarks/lighting_eval.py, 2
-    # held-out Poly Haven maps x 40 masks and 12 unseen procedural maps x 12 masks) it wins
-    # angular error but loses si-RMSE to the plain net, which wins 6 of 12 group x metric
-    # comparisons against 5; the shipped weights are the plain net.
     prior: str = "none"
     seed: int = 0
     threads: int = 2
-    source_probs: tuple = (0.3, 0.35, 0.35)   # poly haven, sky, room
-    net: dict = field(default_factory=dict)   # extra CompletionConfig fields
+    source_probs: tuple = (0.3, 0.35, 0.35)
+    net: dict = field(default_factory=dict)
     checkpoint_every: int = 200
     checkpoint_every_s: float | None = 300.0
 
@@ -260,8 +288,8 @@ def completion_loss(completed, target, h: int, w: int, lowfreq: float = 0.0,
 
 def _lr(step: int, frac: float, cfg) -> float:
     """Linear warm-up over ``cfg.warmup`` steps, then cosine decay to 5 % over the fraction
-    ``frac`` of the time budget that has passed (a step-count estimate made early in a run
-    was measured to reach the floor at half of it)."""
+    ``frac`` of the time budget that has passed (the run is bounded by time, so its step
+    count is not known in advance)."""
     if step < cfg.warmup:
         return cfg.lr * (step + 1) / cfg.warmup
     x = min(1.0, max(0.0, frac))
@@ -269,12 +297,35 @@ def _lr(step: int, frac: float, cfg) -> float:
 
 
 def train(cfg: TrainCompletionConfig, progress: bool = True, command: str | None = None) -> dict:
-    """Train and save the network; returns the log (also written beside the weights as JSON)."""
+    """Train and save the network; returns the log (also written beside the weights as JSON).
+
+    Phases: the data (:func:`build_data`), the model and its optimiser, the samplers, a
+    checkpoint to resume from (:func:`_resume`), the loop (:func:`_train_loop`), the weights
+    and their card (:func:`_save`)."""
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
     t_data = time.perf_counter()
     data = build_data(cfg, progress)
     t_data = time.perf_counter() - t_data
+    model, opt = _model_and_optimiser(cfg)
+    sampler = Sampler(data, cfg, cfg.seed + 7)
+    val_batches = _validation_batches(data, cfg)
+    run = _resume(cfg, model, opt, sampler)
+    t0 = _train_loop(cfg, model, opt, sampler, val_batches, run, progress)
+    return _save(cfg, model, data, run, t0, t_data, command)
+
+
+@dataclass
+class _Run:
+    """Where a training run stands (fresh, or restored from its checkpoint)."""
+    hist: list = field(default_factory=list)      # validation records, one per 100 steps
+    step: int = 0
+    step1_end: int | None = None                   # the first EV-conditioned step
+    elapsed: float = 0.0                           # training seconds before this process
+
+
+def _model_and_optimiser(cfg: TrainCompletionConfig):
+    """(CompletionNet, AdamW): a new network, or ``cfg.init``'s weights."""
     net_cfg = C.CompletionConfig(base_channels=cfg.base_channels, prior=cfg.prior,
                                  train_resolution=(cfg.height, cfg.width), **cfg.net)
     model = C.CompletionNet(net_cfg)
@@ -282,70 +333,109 @@ def train(cfg: TrainCompletionConfig, progress: bool = True, command: str | None
         model.load_state_dict(C.load_weights(cfg.init, net_cfg).state_dict())
         log.info("initialised from %s", cfg.init)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999), weight_decay=0.01)
-    sampler = Sampler(data, cfg, cfg.seed + 7)
+    return model, opt
+
+
+def _validation_batches(data: dict, cfg: TrainCompletionConfig) -> list:
+    """Two EV-0 and two EV-conditioned batches of a fixed sampler (seed 12345)."""
     val = Sampler(data, cfg, 12345)
     with torch.no_grad():
-        val_batches = [val.batch(cfg.batch, "zero") for _ in range(2)] + \
-                      [val.batch(cfg.batch, "ev") for _ in range(2)]
-    budget = cfg.minutes * 60.0
-    hist, step, step1_end, elapsed = [], 0, None, 0.0
+        return [val.batch(cfg.batch, "zero") for _ in range(2)] + \
+               [val.batch(cfg.batch, "ev") for _ in range(2)]
+
+
+def _resume(cfg: TrainCompletionConfig, model, opt, sampler: Sampler) -> _Run:
+    """The run restored from ``cfg.checkpoint_path`` (model, optimiser, random streams),
+    or a fresh one."""
     resumed = _load_checkpoint(cfg)
-    if resumed is not None:
-        model.load_state_dict(resumed["model"])
-        opt.load_state_dict(resumed["opt"])
-        sampler.rng.bit_generator.state = resumed["rng"]
-        torch.set_rng_state(resumed["torch_rng"])
-        hist, step, step1_end, elapsed = (resumed["hist"], resumed["step"], resumed["step1_end"],
-                                          resumed["elapsed"])
-        log.info("resumed %s at step %d (%.0f s)", cfg.checkpoint_path, step, elapsed)
+    if resumed is None:
+        return _Run()
+    model.load_state_dict(resumed["model"])
+    opt.load_state_dict(resumed["opt"])
+    sampler.rng.bit_generator.state = resumed["rng"]
+    torch.set_rng_state(resumed["torch_rng"])
+    run = _Run(resumed["hist"], resumed["step"], resumed["step1_end"], resumed["elapsed"])
+    log.info("resumed %s at step %d (%.0f s)", cfg.checkpoint_path, run.step, run.elapsed)
+    return run
+
+
+def _train_loop(cfg: TrainCompletionConfig, model, opt, sampler: Sampler, val_batches: list,
+                run: _Run, progress: bool) -> float:
+    """Train until the time budget or the step limit; validate every 100 steps (to ``run.hist``
+    and the metrics log), checkpoint on the clock, on SIGINT/SIGTERM and at the end.
+    Returns the start time (``perf_counter``) the run's seconds count from."""
+    budget = cfg.minutes * 60.0
     jsonl_name = f"{Path(cfg.out).stem}.{runlog.LOG_NAME}"     # (time, validation loss) records
-    runlog.rewrite(Path(cfg.out).parent, [runlog.record("train-completion", **r) for r in hist],
+    runlog.rewrite(Path(cfg.out).parent, [runlog.record("train-completion", **r) for r in run.hist],
                    name=jsonl_name)
-    t0 = time.perf_counter() - elapsed
+    t0 = time.perf_counter() - run.elapsed
     clock = CheckpointClock(cfg.checkpoint_every, cfg.checkpoint_every_s)
     bar = tqdm(total=int(budget), desc="train-completion", unit="s", disable=not progress)
     with stop_signals() as guard:
-        while step < cfg.max_steps:
+        while run.step < cfg.max_steps:
             el = time.perf_counter() - t0
             if el >= budget:
                 break
-            frac = max(el / budget, step / cfg.max_steps)
+            frac = max(el / budget, run.step / cfg.max_steps)
             mode = "zero" if frac < cfg.step1_frac else "ev"
-            if mode == "ev" and step1_end is None:
-                step1_end = step
-            for g in opt.param_groups:
-                g["lr"] = _lr(step, frac, cfg)
-            rgb, nor, msk, tgt, evs, lab = sampler.batch(cfg.batch, mode)
-            out = model(rgb, nor, msk, evs, lab)
-            loss = completion_loss(out.completed, tgt, cfg.height, cfg.width, cfg.lowfreq)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            gn = float(torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0))
-            if math.isfinite(loss.item()) and math.isfinite(gn):
-                opt.step()
-            step += 1
-            if step % 100 == 0 or step == 1:
-                with torch.no_grad():
-                    vl = [completion_loss(model(*b[:3], b[4], b[5]).completed, b[3], cfg.height,
-                                          cfg.width).item() for b in val_batches]  # per-pixel term
-                rec = {"step": step, "time_s": round(time.perf_counter() - t0, 1), "mode": mode,
-                       "loss": round(loss.item(), 5), "val_ev0": round(float(np.mean(vl[:2])), 5),
-                       "val_ev": round(float(np.mean(vl[2:])), 5), "lr": opt.param_groups[0]["lr"]}
-                hist.append(rec)
+            if mode == "ev" and run.step1_end is None:
+                run.step1_end = run.step
+            loss = _train_step(cfg, model, opt, sampler, run.step, frac, mode)
+            run.step += 1
+            if run.step % 100 == 0 or run.step == 1:
+                rec = _validation_record(cfg, model, val_batches, loss, run.step, t0, mode, opt)
+                run.hist.append(rec)
                 runlog.append(Path(cfg.out).parent, runlog.record("train-completion", **rec),
                               name=jsonl_name)
                 bar.set_postfix(loss=rec["loss"], val0=rec["val_ev0"], valev=rec["val_ev"])
-            if guard.signum is not None or clock.due(step):
-                _save_checkpoint(cfg, model, opt, sampler, step, time.perf_counter() - t0, hist,
-                                 step1_end)
+            if guard.signum is not None or clock.due(run.step):
+                _save_checkpoint(cfg, model, opt, sampler, run.step, time.perf_counter() - t0,
+                                 run.hist, run.step1_end)
                 clock.mark()
-                guard.raise_if_stopped(step, cfg.checkpoint_path)
+                guard.raise_if_stopped(run.step, cfg.checkpoint_path)
             bar.n = int(min(budget, time.perf_counter() - t0))
             bar.refresh()
         bar.close()
-        _save_checkpoint(cfg, model, opt, sampler, step, time.perf_counter() - t0, hist, step1_end)
+        _save_checkpoint(cfg, model, opt, sampler, run.step, time.perf_counter() - t0, run.hist,
+                         run.step1_end)
+    return t0
+
+
+def _train_step(cfg: TrainCompletionConfig, model, opt, sampler: Sampler, step: int,
+                frac: float, mode: str) -> torch.Tensor:
+    """One optimiser step on a batch of ``mode`` ("zero": EV 0, "ev": EV-conditioned), its
+    gradient clipped at 1; a non-finite loss or gradient skips the update. Returns the loss."""
+    for g in opt.param_groups:
+        g["lr"] = _lr(step, frac, cfg)
+    rgb, nor, msk, tgt, evs, lab = sampler.batch(cfg.batch, mode)
+    out = model(rgb, nor, msk, evs, lab)
+    loss = completion_loss(out.completed, tgt, cfg.height, cfg.width, cfg.lowfreq)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    gn = float(torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0))
+    if math.isfinite(loss.item()) and math.isfinite(gn):
+        opt.step()
+    return loss
+
+
+def _validation_record(cfg: TrainCompletionConfig, model, val_batches: list, loss, step: int,
+                       t0: float, mode: str, opt) -> dict:
+    """The history record of ``step``: the training loss and the per-pixel validation L1 of
+    the EV-0 and the EV-conditioned batches."""
+    with torch.no_grad():
+        vl = [completion_loss(model(*b[:3], b[4], b[5]).completed, b[3], cfg.height,
+                              cfg.width).item() for b in val_batches]        # per-pixel term
+    return {"step": step, "time_s": round(time.perf_counter() - t0, 1), "mode": mode,
+            "loss": round(loss.item(), 5), "val_ev0": round(float(np.mean(vl[:2])), 5),
+            "val_ev": round(float(np.mean(vl[2:])), 5), "lr": opt.param_groups[0]["lr"]}
+
+
+def _save(cfg: TrainCompletionConfig, model, data: dict, run: _Run, t0: float, t_data: float,
+          command: str | None) -> dict:
+    """Save the weights and their card (``<out stem>.json``); returns the card."""
     out_path = C.save_weights(model, cfg.out)
-    info = {"command": command or " ".join(sys.argv), "steps": step, "step1_steps": step1_end,
+    info = {"command": command or " ".join(sys.argv), "steps": run.step,
+            "step1_steps": run.step1_end,
             "train_seconds": round(time.perf_counter() - t0, 1), "data_seconds": round(t_data, 1),
             "parameters": C.count_parameters(model),
             "data": {"maps": int(len(data["maps"])), "masks": int(len(data["masks"])),
@@ -353,7 +443,7 @@ def train(cfg: TrainCompletionConfig, progress: bool = True, command: str | None
                                            if s == 0}), "held_out": list(cfg.held_out),
                      "init_maps": _init_maps(cfg.init)},
             "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()},
-            "torch": torch.__version__, "history": hist}
+            "torch": torch.__version__, "history": run.hist}
     out_path.with_suffix(".json").write_text(json.dumps(runlog.json_safe(info), indent=1,
                                                         allow_nan=False))
     return info
@@ -367,60 +457,55 @@ def _init_maps(init) -> list | None:
     return None if maps is None else sorted(maps)
 
 
+#: ``--out`` (``core.config.shared_options``) of ``comgs train-completion``.
+OUT_OPTION = dict(type=Path, default=None, metavar="W.pt",
+                  help=f"weights file (default {TrainCompletionConfig.out}; the shipped one, "
+                       f"{DEFAULT_WEIGHTS}, is replaced only when named here)")
+
+
 def add_arguments(ap) -> None:
-    """The ``comgs train-completion`` options (also ``python -m comgs_dr.stages.train_completion``)."""
-    d = TrainCompletionConfig()
-    ap.add_argument("--out", type=Path, default=d.out, help=f"weights file (default {d.out}; "
-                    f"the shipped one, {DEFAULT_WEIGHTS}, is replaced only when named here)")
-    ap.add_argument("--data-dir", type=Path, default=d.data_dir, help="training-data cache folder")
-    ap.add_argument("--maps", type=Path, default=None, help="folder of .hdr/.exr maps "
-                    "(default: shared/data/hdri)")
-    ap.add_argument("--held-out", nargs="*", default=list(d.held_out),
-                    help="map names (file stems) never trained on")
-    ap.add_argument("--minutes", type=float, default=d.minutes)
-    ap.add_argument("--max-steps", type=int, default=d.max_steps)
-    ap.add_argument("--res", type=int, default=d.height, help="panorama height (width = 2x)")
-    ap.add_argument("--skies", type=int, default=d.n_sky)
-    ap.add_argument("--rooms", type=int, default=d.n_rooms)
-    ap.add_argument("--masks", type=int, default=d.n_masks)
-    ap.add_argument("--room-spp", type=int, default=d.room_spp)
-    ap.add_argument("--batch", type=int, default=d.batch)
-    ap.add_argument("--lr", type=float, default=d.lr)
-    ap.add_argument("--lowfreq", type=float, default=d.lowfreq,
-                    help="weight of the block-averaged (low-frequency) L1 terms")
-    ap.add_argument("--channels", type=int, default=d.base_channels)
-    ap.add_argument("--prior", choices=("push_pull", "none"), default=d.prior,
+    """The ``comgs train-completion`` flags (also ``python -m comgs_dr.stages.train_completion``):
+    every scalar field of :class:`TrainCompletionConfig` as ``--field-name``
+    (``core.config.add_config_arguments``), some also under the name users typed before
+    (``--skies`` for ``n_sky``); ``--out`` and ``--quiet`` where ``ap`` lacks them (a parser
+    not built on ``core.config.shared_options``)."""
+    if not any(a.dest == "out" for a in ap._actions):
+        ap.add_argument("--out", **OUT_OPTION)
+        ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    # older spellings, paths, lists and choices (add_config_arguments makes plain typed flags)
+    ap.add_argument("--res", "--height", dest="height", type=int, default=None,
+                    help=f"panorama height, a multiple of 16 (width = 2x; default "
+                         f"{TrainCompletionConfig.height})")
+    ap.add_argument("--skies", "--n-sky", dest="n_sky", type=int, default=None)
+    ap.add_argument("--rooms", "--n-rooms", dest="n_rooms", type=int, default=None)
+    ap.add_argument("--masks", "--n-masks", dest="n_masks", type=int, default=None)
+    ap.add_argument("--channels", "--base-channels", dest="base_channels", type=int, default=None)
+    ap.add_argument("--prior", choices=("push_pull", "none"), default=None,
                     help="predict a residual on the push-pull fill, or the panorama directly "
                          "(none, default: the shipped weights)")
-    ap.add_argument("--wb-jitter", type=float, default=d.wb_jitter,
-                    help="std of the log per-channel white-balance gain (augmentation)")
-    ap.add_argument("--step1-frac", type=float, default=d.step1_frac,
-                    help="fraction of the budget spent on EV-0 completion before EV training")
-    ap.add_argument("--warmup", type=int, default=d.warmup, help="warm-up steps")
+    ap.add_argument("--data-dir", type=Path, default=None, help="training-data cache folder")
+    ap.add_argument("--maps", dest="maps_dir", type=Path, default=None,
+                    help="folder of .hdr/.exr maps (default: shared/data/hdri)")
+    ap.add_argument("--held-out", nargs="*", default=None, metavar="NAME",
+                    help="map names (file stems) never trained on")
     ap.add_argument("--init", type=Path, default=None,
                     help="start from these weights (same architecture): fine-tuning")
-    ap.add_argument("--seed", type=int, default=d.seed)
-    ap.add_argument("--threads", type=int, default=d.threads)
-    ap.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every, metavar="STEPS",
-                    help="checkpoint every this many steps (and on SIGINT/SIGTERM)")
-    ap.add_argument("--checkpoint-every-s", type=float, default=d.checkpoint_every_s,
-                    metavar="SECONDS", help="... and every this many seconds of wall time")
-    ap.add_argument("--quiet", action="store_true")
+    add_config_arguments(ap, TrainCompletionConfig, exclude=("width",))   # width = 2 × height
+
+
+def config_from_args(args) -> TrainCompletionConfig:
+    """The config of the flags ``args`` holds (what was not typed keeps its default)."""
+    kw = config_overrides(args, TrainCompletionConfig)
+    height = kw.get("height", TrainCompletionConfig.height)
+    if height < 16 or height % 16:
+        raise ValueError(f"--res must be a positive multiple of 16, got {height}")
+    if "held_out" in kw:
+        kw["held_out"] = tuple(kw["held_out"])
+    return TrainCompletionConfig(**kw, width=2 * height)
 
 
 def run_from_args(args) -> int:
-    if args.res < 16 or args.res % 16:
-        raise ValueError(f"--res must be a positive multiple of 16, got {args.res}")
-    cfg = TrainCompletionConfig(
-        out=args.out, data_dir=args.data_dir, maps_dir=args.maps, held_out=tuple(args.held_out),
-        height=args.res, width=2 * args.res, n_sky=args.skies, n_rooms=args.rooms,
-        n_masks=args.masks, room_spp=args.room_spp, minutes=args.minutes,
-        max_steps=args.max_steps, batch=args.batch, lr=args.lr, base_channels=args.channels,
-        lowfreq=args.lowfreq,
-        prior=args.prior, wb_jitter=args.wb_jitter, step1_frac=args.step1_frac,
-        warmup=args.warmup, init=args.init,
-        seed=args.seed, threads=args.threads, checkpoint_every=args.checkpoint_every,
-        checkpoint_every_s=args.checkpoint_every_s)
+    cfg = config_from_args(args)
     info = train(cfg, progress=not args.quiet, command=" ".join(sys.argv))
     last = info["history"][-1] if info["history"] else {}
     print(f"saved {cfg.out}: {info['steps']} steps in {info['train_seconds']} s "
@@ -433,6 +518,7 @@ if __name__ == "__main__":
 
     set_variant("llvm_ad_rgb")
     _ap = argparse.ArgumentParser(prog="comgs train-completion", description=__doc__,
-                                  formatter_class=argparse.RawDescriptionHelpFormatter)
+                                  formatter_class=argparse.RawDescriptionHelpFormatter,
+                                  parents=[shared_options(out=OUT_OPTION, mitsuba_variant=False)])
     add_arguments(_ap)
     sys.exit(run_from_args(_ap.parse_args()))

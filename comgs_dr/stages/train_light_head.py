@@ -15,9 +15,8 @@ left out) and records the mean absolute error of the log gain on what was left o
 constant guess (the training median); the shipped head is then fitted on everything.
 
 Loss: Huber (δ = 0.5) on the log gain; AdamW (weight decay ``weight_decay``), minibatches of
-512, cosine learning rate. Settings chosen by that cross-validation (hidden 64, weight decay
-1e-2, 1000 steps: real-map MAE 0.71 against 0.78 for 1e-4/3000 steps and 0.77 for 128
-hidden units). Minutes on 2 cores; the shipped head is ``lighting/weights/light_head.pt``.
+512, cosine learning rate; the defaults were chosen by that cross-validation. The shipped
+head is ``lighting/weights/light_head.pt``.
 """
 from __future__ import annotations
 
@@ -35,6 +34,7 @@ import torch
 from tqdm import tqdm
 
 from comgs_dr.core.colorspace import LUMA
+from comgs_dr.core.config import add_config_arguments, config_overrides, shared_options
 from comgs_dr.core.equirect import pixel_solid_angles
 from comgs_dr.core.runlog import json_safe
 from comgs_dr.core.variant import set_variant
@@ -50,54 +50,72 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class TrainLightHeadConfig:
-    out: Path = Path("out/light_head.pt")   # not the shipped L.DEFAULT_HEAD unless named
+    """Settings of :func:`train`.
+
+    out: the head's weights (default ``out/light_head.pt``; the shipped ``L.DEFAULT_HEAD``
+        is replaced only when named here), its card beside it as JSON.
+    data_dir: folder of the generated regions (``light_head_data.npz``, reused while the
+        data settings match).
+    maps_dir: folder of real .hdr/.exr maps (None: ``shared/data/hdri``); held_out: the file
+        stems of the maps never trained on.
+    heights: panorama heights the regions are drawn at, multiples of 64 (default 64, 128,
+        256, 512: the head serves small benchmarks and ``estimate-light``'s 512-px trace).
+    draws_real: draws per real map and height (default 60).
+    n_sky, draws_sky: sunsky skies (the same ones at every height) and draws per sky and
+        height (default 240, 3).
+    n_rooms, draws_room: path-traced rooms (used at 64 and 128 px only) and draws per room
+        and height (default 100, 4).
+    room_bulbs: half the rooms with bare bulbs (``pano_data.room_panorama``; default off).
+    room_height: height the rooms are traced at, area-averaged below it (default 64).
+    white_core: train only on regions with a white core, as ``clipped_regions(white_core=
+        True)`` finds them (default off: every clipped region).
+    ensemble: > 1: save a ``lights.HeadEnsemble`` of heads fitted with seeds seed … seed +
+        ensemble − 1 (the cross-validation folds fit the same ensemble); a single head's
+        light directions vary with its seed (default 1).
+    scene_probes, draws_scene: per real map, panoramas of its light *inside a scene*,
+        path-traced at a random placement in ``make-dataset composition``'s procedural scene
+        (ground, wall, box) under the map turned by a random azimuth (:func:`scene_probe`),
+        and draws of each at every height; the bare maps never show the ground and walls a
+        placement sees (default 0: none; 10 draws).
+    n_masks: traced surfel masks the draws are seen through (default 120).
+    aug_ev: re-exposure of each draw, auto exposure × 2^U(−aug_ev, aug_ev) (default 1.5).
+    wb_jitter: std of the log per-channel white-balance gain (default 0.1).
+    full_view: fraction of draws with the whole sphere observed (default 0.15).
+    blur_frac, blur_deg: fraction of draws whose LDR panorama is blurred as a
+        reconstruction's sky holds it (:func:`blur_ldr`), with σ ~ U(blur_deg) in degrees
+        (default 0: none; 0.5–3°).
+    steps, lr, hidden, weight_decay: AdamW steps, learning rate, hidden units and weight
+        decay of the fit (default 1000, 3e-3, 64, 1e-2; chosen by the cross-validation).
+    rank_weight: weight of the listwise ranking term (:func:`_rank_loss`): per panorama, the
+        cross-entropy of the softmax of the predicted log powers against that of the true
+        ones (the Huber loss scores each region apart; which region is strongest sets the
+        light's direction). Default 0: off.
+    cv: cross-validate by map identity before the final fit (default on).
+    seed, threads: random seed and torch threads (default 0, 2).
+    """
+    out: Path = Path("out/light_head.pt")
     data_dir: Path = Path("out/light_head_data")
     maps_dir: Path | None = None
     held_out: tuple = P.HELD_OUT
     heights: tuple = (64, 128, 256, 512)
-    draws_real: int = 60          # per real map and height
-    n_sky: int = 240              # skies (the same ones at every height)
-    draws_sky: int = 3            # per sky and height
-    n_rooms: int = 100            # rooms (64 and 128 px only: path tracing)
+    draws_real: int = 60
+    n_sky: int = 240
+    draws_sky: int = 3
+    n_rooms: int = 100
     draws_room: int = 4
-    # The defaults below are the shipped head's recipe. Measured against it (lighting_eval
-    # --held-out, dominant-light angle with the light visible, 8 / 16 masks; shipped 18.4° /
-    # 33.4°): 300 rooms traced at 128 px, half with bare bulbs, white-core regions 44.2° /
-    # 40.9°; the same with every clipped region 43.9° / 40.8° (the interiors' lamps came out
-    # weaker, not stronger). Not shipped.
-    room_bulbs: bool = False      # half the rooms with bare bulbs (``pano_data.room_panorama``)
-    room_height: int = 64         # rooms are traced at this height, area-averaged below it
-    white_core: bool = False      # training regions as ``clipped_regions(white_core=...)``
-    # > 1: save a ``lights.HeadEnsemble`` of heads fitted with seeds seed … seed + k − 1 (the
-    # CV folds fit the same ensemble). Single heads' held-out light angle swings with the seed
-    # (31.2° / 35.5° / 34.9° on one data draw, docs/lighting.md "Stop 41"); the shipped head is
-    # ``--held-out --ensemble 3`` (all 13 shared maps, seeds 0–2) with the other defaults.
+    room_bulbs: bool = False
+    room_height: int = 64
+    white_core: bool = False
     ensemble: int = 1
-    # Per real map, panoramas of the map's light *inside a scene*: path-traced at a random
-    # placement in `make-dataset composition`'s procedural scene (ground, wall, box) under
-    # the map turned by a random azimuth (``scene_probe``), ``draws_scene`` draws each at
-    # every height. The bare maps never show the ground and walls a placement sees; the
-    # head misjudged lamps there (benchmarks/light_head_in_scene.py). 0: off.
     scene_probes: int = 0
     draws_scene: int = 10
     n_masks: int = 120
     aug_ev: float = 1.5
     wb_jitter: float = 0.1
-    full_view: float = 0.15       # fraction of draws with the whole sphere observed
-    # Fraction of draws whose LDR panorama is blurred as a reconstruction's sky (σ in
-    # ``blur_deg``). Off: a head trained with 0.4 (and the white-core regions) was measured
-    # against the shipped one: held-out light angle 34.0° vs 41.3°, but si-RMSE 1.265 vs
-    # 1.234 and the demo's sun gain 13.6 vs 50 (lighting_eval --held-out --masks 8).
+    full_view: float = 0.15
     blur_frac: float = 0.0
     blur_deg: tuple = (0.5, 3.0)
     steps: int = 1000
-    # Weight of a listwise ranking term (``_rank_loss``): per panorama, the cross-entropy of
-    # the softmax of the predicted log powers (log seen + predicted gain) against that of the
-    # true ones, over 64 panoramas with ≥ 2 regions per step. The Huber loss alone scores each
-    # region apart; which region is strongest is what sets the light's direction. Off: with
-    # the context features, W = 0.1 / 0.3 gave held-out light angles 24.0° / 24.1° vs 23.8°
-    # and dimmed blender_sunrise's sun (relighting 20.1 / 19.4 vs 20.5 dB;
-    # docs/lighting.md "Stop 42").
     rank_weight: float = 0.0
     lr: float = 3e-3
     hidden: int = 64
@@ -156,10 +174,9 @@ def scene_probe(env, rng, textures: dict, height: int = 256, spp_side: int = 4) 
 
 def blur_ldr(ldr, alpha, sigma_px: float) -> np.ndarray:
     """The EV-0 LDR panorama as a reconstruction holds it: a sky learned from LDR images at
-    the reconstruction's resolution is their clipped display values, averaged (the demo's
-    6° sun reached the trace as a soft blob with a white core 20–60 % of its clipped area;
-    the unblurred training suns were all white). Mask-normalised Gaussian (σ in pixels,
-    wrapping in u), zero outside the mask."""
+    the reconstruction's resolution is their clipped display values, averaged, so a sun
+    reaches the trace as a soft blob around a white core. Mask-normalised Gaussian (σ in
+    pixels, wrapping in u), zero outside the mask."""
     from scipy.ndimage import gaussian_filter
     a = (alpha > 0.5).astype(np.float64)
     mode = ("nearest", "wrap")
@@ -426,60 +443,62 @@ def train(cfg: TrainLightHeadConfig, progress: bool = True, command: str = "",
     return info
 
 
+#: ``--out`` (``core.config.shared_options``) of ``comgs train-light-head``.
+OUT_OPTION = dict(type=Path, default=None, metavar="HEAD.pt",
+                  help=f"weights (default {TrainLightHeadConfig.out}; the shipped ones, "
+                       f"{L.DEFAULT_HEAD}, are replaced only when named here; use yours with "
+                       f"estimate-light --light-head)")
+
+
 def add_arguments(ap) -> None:
-    d = TrainLightHeadConfig()
-    ap.add_argument("--out", type=Path, default=d.out, help=f"weights (default {d.out}; the "
-                    f"shipped ones, {L.DEFAULT_HEAD}, are replaced only when named here; "
-                    f"use yours with estimate-light --light-head)")
-    ap.add_argument("--data-dir", type=Path, default=d.data_dir)
-    ap.add_argument("--maps", type=Path, default=None, help="folder of .hdr/.exr maps")
-    ap.add_argument("--held-out", nargs="*", default=list(d.held_out))
-    ap.add_argument("--heights", type=int, nargs="+", default=list(d.heights))
-    ap.add_argument("--draws", type=int, default=d.draws_real, help="draws per real map and size")
-    ap.add_argument("--skies", type=int, default=d.n_sky)
-    ap.add_argument("--rooms", type=int, default=d.n_rooms)
-    ap.add_argument("--bulbs", action="store_true", help="half the rooms with bare bulbs")
-    ap.add_argument("--room-height", type=int, default=d.room_height,
-                    help="height the rooms are traced at (64 or 128)")
-    ap.add_argument("--white-core", action="store_true", help="train only on regions with a "
-                    "white core (as inference sees them; the shipped head saw every clipped one)")
-    ap.add_argument("--ensemble", type=int, default=d.ensemble,
-                    help="save the mean of this many heads fitted with consecutive seeds")
-    ap.add_argument("--scene-probes", type=int, default=d.scene_probes,
-                    help="per real map, path-traced panoramas of it inside the composition "
-                         "scene (default 0: none)")
-    ap.add_argument("--draws-scene", type=int, default=d.draws_scene)
-    ap.add_argument("--masks", type=int, default=d.n_masks)
-    ap.add_argument("--steps", type=int, default=d.steps)
-    ap.add_argument("--blur-frac", type=float, default=d.blur_frac,
-                    help="fraction of draws blurred as a reconstruction's sky (0: none)")
-    ap.add_argument("--weight-decay", type=float, default=d.weight_decay)
-    ap.add_argument("--rank-weight", type=float, default=d.rank_weight,
-                    help="weight of the listwise ranking loss (which region is strongest)")
-    ap.add_argument("--no-cv", action="store_true", help="skip the cross-validation")
+    """The ``comgs train-light-head`` flags (also ``python -m
+    comgs_dr.stages.train_light_head``): every scalar field of :class:`TrainLightHeadConfig`
+    as ``--field-name`` (``core.config.add_config_arguments``), some also under the name
+    users typed before (``--skies`` for ``n_sky``); ``--out`` and ``--quiet`` where ``ap``
+    lacks them (a parser not built on ``core.config.shared_options``)."""
+    if not any(a.dest == "out" for a in ap._actions):
+        ap.add_argument("--out", **OUT_OPTION)
+        ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    # older spellings, switches, paths and lists (add_config_arguments makes plain typed flags)
+    ap.add_argument("--draws", "--draws-real", dest="draws_real", type=int, default=None,
+                    help="draws per real map and size")
+    ap.add_argument("--skies", "--n-sky", dest="n_sky", type=int, default=None)
+    ap.add_argument("--rooms", "--n-rooms", dest="n_rooms", type=int, default=None)
+    ap.add_argument("--masks", "--n-masks", dest="n_masks", type=int, default=None)
+    ap.add_argument("--bulbs", dest="room_bulbs", action="store_const", const=True, default=None,
+                    help="half the rooms with bare bulbs")
+    ap.add_argument("--white-core", action="store_const", const=True, default=None,
+                    help="train only on regions with a white core (as inference sees them; "
+                         "the shipped head saw every clipped one)")
+    ap.add_argument("--no-cv", dest="cv", action="store_const", const=False, default=None,
+                    help="skip the cross-validation")
+    ap.add_argument("--data-dir", type=Path, default=None)
+    ap.add_argument("--maps", dest="maps_dir", type=Path, default=None,
+                    help="folder of .hdr/.exr maps")
+    ap.add_argument("--held-out", nargs="*", default=None, metavar="NAME")
+    ap.add_argument("--heights", type=int, nargs="+", default=None)
+    # not a config field: where train() saves the cross-validation's fold heads
     ap.add_argument("--cv-out", type=Path, default=None, help="save each left-out map's "
                     "cross-validation head here as <map stem>.pt (for lighting_eval --cv-heads)")
-    ap.add_argument("--seed", type=int, default=d.seed)
-    ap.add_argument("--threads", type=int, default=d.threads)
-    ap.add_argument("--quiet", action="store_true")
+    add_config_arguments(ap, TrainLightHeadConfig)
+
+
+def config_from_args(args) -> TrainLightHeadConfig:
+    """The config of the flags ``args`` holds (what was not typed keeps its default);
+    ValueError for an ensemble below 1 or a height that is no multiple of 64."""
+    kw = {k: tuple(v) if isinstance(v, list) else v
+          for k, v in config_overrides(args, TrainLightHeadConfig).items()}
+    cfg = TrainLightHeadConfig(**kw)
+    if cfg.ensemble < 1:
+        raise ValueError(f"--ensemble must be >= 1, got {cfg.ensemble}")
+    if any(h < 16 or h % 64 for h in cfg.heights):
+        raise ValueError(f"--heights must be multiples of 64, got {list(cfg.heights)}")
+    return cfg
 
 
 def run_from_args(args) -> int:
-    if args.ensemble < 1:
-        raise ValueError(f"--ensemble must be >= 1, got {args.ensemble}")
-    if any(h < 16 or h % 64 for h in args.heights):
-        raise ValueError(f"--heights must be multiples of 64, got {args.heights}")
-    cfg = TrainLightHeadConfig(out=args.out, data_dir=args.data_dir, maps_dir=args.maps,
-                               held_out=tuple(args.held_out), heights=tuple(args.heights),
-                               draws_real=args.draws, n_sky=args.skies, n_rooms=args.rooms,
-                               n_masks=args.masks, steps=args.steps, seed=args.seed,
-                               weight_decay=args.weight_decay, cv=not args.no_cv,
-                               threads=args.threads, blur_frac=args.blur_frac,
-                               room_bulbs=args.bulbs, room_height=args.room_height,
-                               white_core=args.white_core, ensemble=args.ensemble,
-                               scene_probes=args.scene_probes, draws_scene=args.draws_scene,
-                               rank_weight=args.rank_weight)
-    if args.cv_out is not None and args.no_cv:
+    cfg = config_from_args(args)
+    if args.cv_out is not None and not cfg.cv:
         raise ValueError("--cv-out saves the cross-validation's heads; it cannot go with --no-cv")
     info = train(cfg, progress=not args.quiet, command=" ".join(sys.argv), cv_dir=args.cv_out)
     print(f"saved {cfg.out}: {info['regions']} regions, training MAE of log gain "
@@ -497,6 +516,7 @@ def run_from_args(args) -> int:
 if __name__ == "__main__":
     set_variant("llvm_ad_rgb")
     _ap = argparse.ArgumentParser(prog="comgs train-light-head", description=__doc__,
-                                  formatter_class=argparse.RawDescriptionHelpFormatter)
+                                  formatter_class=argparse.RawDescriptionHelpFormatter,
+                                  parents=[shared_options(out=OUT_OPTION, mitsuba_variant=False)])
     add_arguments(_ap)
     sys.exit(run_from_args(_ap.parse_args()))

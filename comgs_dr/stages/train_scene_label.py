@@ -10,7 +10,7 @@ and each real map weighs as much as all skies (or all rooms) together.
 Validation is by map identity: each real map is left out in turn (the model refitted on the
 rest) and its draws scored; then the held-out maps (never used in fitting) are scored by
 the model fitted on everything. Reported: accuracy of the hard decision, the fraction
-answered "unknown", and the wrong answers. About a minute on 2 cores.
+answered "unknown", and the wrong answers.
 """
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from comgs_dr.core.config import add_config_arguments, config_overrides, shared_options
 from comgs_dr.core.variant import set_variant
 from comgs_dr.data import pano_masks
 from comgs_dr.data.synthetic import shared_data_dir
@@ -34,17 +35,36 @@ OUTDOOR, INDOOR = 1, 0
 
 @dataclass
 class TrainSceneLabelConfig:
-    out: Path = Path("out/scene_label.json")   # not the shipped S.DEFAULT_MODEL unless named
+    """Settings of :func:`train`.
+
+    out: the model (default ``out/scene_label.json``; the shipped ``S.DEFAULT_MODEL`` is
+        replaced only when named here).
+    maps_dir: folder of real .hdr/.exr maps (None: ``shared/data/hdri``); held_out: the file
+        stems of the maps never fitted on (scored at the end).
+    heights: panorama heights the real maps are drawn at (default 64, 256).
+    draws_real: draws per real map and height (default 40).
+    n_sky, n_rooms: sunsky skies and path-traced rooms (default 150 each), ``draws_synth``
+        draws of each (default 2); rooms traced at ``room_spp`` samples per pixel (default
+        16), the share ``finished_rooms`` in [0, 1] drawn finished (``pano_data.
+        _finish_room``: white ceiling, wood floor, strip lights; default 0).
+    n_masks: traced surfel masks the draws are seen through (default 60).
+    aug_ev: re-exposure of each draw, auto exposure × 2^U(−aug_ev, aug_ev) (default 1.5).
+    wb_jitter: std of the log per-channel white-balance gain (default 0.1).
+    full_view: fraction of draws with the whole sphere observed (default 0.1).
+    l2, margin: the logistic fit's L2 weight (> 0; default 1) and the margin around
+        p = 0.5 answered "unknown" (in [0, 0.5); default 0.2).
+    seed: random seed (default 0).
+    """
+    out: Path = Path("out/scene_label.json")
     maps_dir: Path | None = None
     held_out: tuple = P.HELD_OUT
     heights: tuple = (64, 256)
-    draws_real: int = 40          # per real map and height
+    draws_real: int = 40
     n_sky: int = 150
     n_rooms: int = 150
-    finished_rooms: float = 0.0   # share of the rooms drawn finished (``pano_data.
-                                  # _finish_room``: white ceiling, wood floor, strip lights)
+    finished_rooms: float = 0.0
     room_spp: int = 16
-    draws_synth: int = 2          # per sky / room
+    draws_synth: int = 2
     n_masks: int = 60
     aug_ev: float = 1.5
     wb_jitter: float = 0.1
@@ -169,39 +189,54 @@ def train(cfg: TrainSceneLabelConfig, progress: bool = True, command: str = "") 
     return model.info
 
 
+#: ``--out`` (``core.config.shared_options``) of ``comgs train-scene-label``.
+OUT_OPTION = dict(type=Path, default=None, metavar="MODEL.json",
+                  help=f"model (default {TrainSceneLabelConfig.out}; the shipped one, "
+                       f"{S.DEFAULT_MODEL}, is replaced only when named here; use yours with "
+                       f"estimate-light / compose --scene-label)")
+
+
 def add_arguments(ap) -> None:
+    """The ``comgs train-scene-label`` flags (also ``python -m
+    comgs_dr.stages.train_scene_label``): every scalar field of
+    :class:`TrainSceneLabelConfig` as ``--field-name`` (``core.config.add_config_arguments``),
+    some also under the name users typed before (``--skies`` for ``n_sky``); ``--out`` and
+    ``--quiet`` where ``ap`` lacks them (a parser not built on
+    ``core.config.shared_options``)."""
+    if not any(a.dest == "out" for a in ap._actions):
+        ap.add_argument("--out", **OUT_OPTION)
+        ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    # older spellings, paths and lists (add_config_arguments makes plain typed flags)
+    ap.add_argument("--draws", "--draws-real", dest="draws_real", type=int, default=None,
+                    help="draws per real map and size")
+    ap.add_argument("--skies", "--n-sky", dest="n_sky", type=int, default=None)
+    ap.add_argument("--rooms", "--n-rooms", dest="n_rooms", type=int, default=None)
+    ap.add_argument("--maps", dest="maps_dir", type=Path, default=None,
+                    help="folder of .hdr/.exr maps")
+    ap.add_argument("--held-out", nargs="*", default=None, metavar="NAME")
+    add_config_arguments(ap, TrainSceneLabelConfig)
+
+
+def config_from_args(args) -> TrainSceneLabelConfig:
+    """The config of the flags ``args`` holds (what was not typed keeps its default);
+    ValueError naming the flag of a value out of range."""
+    kw = {k: tuple(v) if isinstance(v, list) else v
+          for k, v in config_overrides(args, TrainSceneLabelConfig).items()}
     d = TrainSceneLabelConfig()
-    ap.add_argument("--out", type=Path, default=d.out, help=f"model (default {d.out}; the "
-                    f"shipped one, {S.DEFAULT_MODEL}, is replaced only when named here; use "
-                    f"yours with estimate-light / compose --scene-label)")
-    ap.add_argument("--maps", type=Path, default=None, help="folder of .hdr/.exr maps")
-    ap.add_argument("--held-out", nargs="*", default=list(d.held_out))
-    ap.add_argument("--draws", type=int, default=d.draws_real, help="draws per real map and size")
-    ap.add_argument("--skies", type=int, default=d.n_sky)
-    ap.add_argument("--rooms", type=int, default=d.n_rooms)
-    ap.add_argument("--finished-rooms", type=float, default=d.finished_rooms,
-                    help="share of the rooms drawn as finished interiors (white ceiling, wood "
-                         "floor, strip lights, uplights)")
-    ap.add_argument("--room-spp", type=int, default=d.room_spp, help="samples per pixel of "
-                    "the path-traced rooms")
-    ap.add_argument("--l2", type=float, default=d.l2)
-    ap.add_argument("--margin", type=float, default=d.margin)
-    ap.add_argument("--seed", type=int, default=d.seed)
-    ap.add_argument("--quiet", action="store_true")
+    v = {k: kw.get(k, getattr(d, k)) for k in ("margin", "draws_real", "n_sky", "n_rooms", "l2",
+                                              "finished_rooms", "room_spp")}
+    if not 0.0 <= v["margin"] < 0.5:
+        raise ValueError(f"--margin must lie in [0, 0.5), got {v['margin']}")
+    if v["draws_real"] < 1 or v["n_sky"] < 0 or v["n_rooms"] < 0 or not v["l2"] > 0:
+        raise ValueError("--draws must be >= 1; --skies, --rooms >= 0; --l2 > 0")
+    if not 0.0 <= v["finished_rooms"] <= 1.0 or v["room_spp"] < 1:
+        raise ValueError(f"--finished-rooms must lie in [0, 1] and --room-spp be >= 1, got "
+                         f"{v['finished_rooms']}, {v['room_spp']}")
+    return TrainSceneLabelConfig(**kw)
 
 
 def run_from_args(args) -> int:
-    if not 0.0 <= args.margin < 0.5:
-        raise ValueError(f"--margin must lie in [0, 0.5), got {args.margin}")
-    if args.draws < 1 or args.skies < 0 or args.rooms < 0 or not args.l2 > 0:
-        raise ValueError("--draws must be >= 1; --skies, --rooms >= 0; --l2 > 0")
-    if not 0.0 <= args.finished_rooms <= 1.0 or args.room_spp < 1:
-        raise ValueError(f"--finished-rooms must lie in [0, 1] and --room-spp be >= 1, got "
-                         f"{args.finished_rooms}, {args.room_spp}")
-    cfg = TrainSceneLabelConfig(out=args.out, maps_dir=args.maps, held_out=tuple(args.held_out),
-                                draws_real=args.draws, n_sky=args.skies, n_rooms=args.rooms,
-                                finished_rooms=args.finished_rooms, room_spp=args.room_spp,
-                                l2=args.l2, margin=args.margin, seed=args.seed)
+    cfg = config_from_args(args)
     info = train(cfg, progress=not args.quiet, command=" ".join(sys.argv))
     print(f"saved {cfg.out}: {info['draws']} draws; on them {info['train_scores']}")
     print("| left out / held out | draws | correct | unknown | wrong | mean p(outdoor) |\n"
@@ -216,6 +251,7 @@ def run_from_args(args) -> int:
 if __name__ == "__main__":
     set_variant("llvm_ad_rgb")
     _ap = argparse.ArgumentParser(prog="comgs train-scene-label", description=__doc__,
-                                  formatter_class=argparse.RawDescriptionHelpFormatter)
+                                  formatter_class=argparse.RawDescriptionHelpFormatter,
+                                  parents=[shared_options(out=OUT_OPTION, mitsuba_variant=False)])
     add_arguments(_ap)
     sys.exit(run_from_args(_ap.parse_args()))
