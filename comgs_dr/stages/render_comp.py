@@ -56,8 +56,9 @@ class RenderCompConfig:
         ``surfels.edit.parse_material_spec`` reads it: ``albedo=R,G,B`` (linear, in
         [0, 1]) or ``scale=S[,S,S]`` (multiplies the albedo), ``roughness=X``,
         ``metallic=Y``. Example: ``{"chair": "albedo=0.8,0.1,0.1,roughness=0.3"}``.
-    res: image size in pixels, ``W`` or ``(W, H)`` (None: the ground truth's, else the
-        camera file's); at most ``MAX_SIDE`` a side and (MAX_SIDE/2)² pixels.
+    res: image size in pixels, ``W`` (a W × W image) or ``(W, H)`` (None: the ground
+        truth's, else the camera file's); at most ``MAX_SIDE`` a side and (MAX_SIDE/2)²
+        pixels.
     rays: S_r, the integrator's rays per pixel for shading and for shadows (None: its
         default, 256).
     seed: sampler seed of the first frame; frame i renders with seed + i (default 0).

@@ -218,7 +218,25 @@ def build_data(cfg: TrainLightHeadConfig, progress: bool = True) -> dict:
     rooms = [P.room_panorama(rng, rh, 2 * rh, spp=16, seed=cfg.seed * 7919 + i,
                              bulbs=cfg.room_bulbs)
              for i in tqdm(range(cfg.n_rooms), desc="rooms", disable=not progress)]
-    probes = {}                     # {map index: [scene probes at 256 rows]}
+    probes = _scene_probes(cfg, files, progress)
+    feats, targets, groups, panos, seen_log = _draw_regions(rng, cfg, files, masks, rooms,
+                                                            probes, progress)
+    d = {"features": np.concatenate(feats).astype(np.float32),
+         "targets": np.asarray(targets, np.float32), "groups": np.asarray(groups, np.int64),
+         "panos": np.asarray(panos, np.int64), "log_seen": np.asarray(seen_log, np.float32),
+         "names": np.array([p.stem for p in files]), "key": np.array(key),
+         "seconds": np.array(time.perf_counter() - t0)}
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    tmp = cache.with_suffix(".tmp.npz")
+    np.savez(tmp, **d)
+    tmp.replace(cache)
+    return d
+
+
+def _scene_probes(cfg: TrainLightHeadConfig, files: list, progress: bool) -> dict:
+    """{real map index: [cfg.scene_probes panoramas of it inside the composition scene, at
+    256 rows]} (:func:`scene_probe`); {} when ``cfg.scene_probes`` is 0."""
+    probes = {}
     if cfg.scene_probes > 0 and any(h > 256 and h % 256 for h in cfg.heights):
         raise ValueError(f"--scene-probes: the probes are rendered at 256 rows, so --heights "
                          f"must be ≤ 256 or multiples of it, got {list(cfg.heights)}")
@@ -229,6 +247,14 @@ def build_data(cfg: TrainLightHeadConfig, progress: bool = True) -> dict:
         for i, p in enumerate(tqdm(files, desc="scene probes", disable=not progress)):
             env = P.load_map(p, 256, 512)
             probes[i] = [scene_probe(env, prng, textures) for _ in range(cfg.scene_probes)]
+    return probes
+
+
+def _draw_regions(rng, cfg: TrainLightHeadConfig, files: list, masks, rooms: list, probes: dict,
+                  progress: bool) -> tuple[list, list, list, list, list]:
+    """(features, targets, groups, panos, log_seen) of the clipped regions of every draw
+    (:func:`_draws`), at every height: the scene probes, the real maps, the skies (groups
+    1000 + i) and, at 128 rows or fewer, the rooms (groups 2000 + i)."""
     feats, targets, groups, panos, seen_log = acc = [], [], [], [], []
     for h in cfg.heights:
         for i, ps in probes.items():
@@ -249,16 +275,7 @@ def build_data(cfg: TrainLightHeadConfig, progress: bool = True) -> dict:
                 if room.max() > 0:
                     _draws(rng, room, masks, cfg.draws_room, cfg, C.LABELS["indoor"],
                            2000 + i, *acc)
-    d = {"features": np.concatenate(feats).astype(np.float32),
-         "targets": np.asarray(targets, np.float32), "groups": np.asarray(groups, np.int64),
-         "panos": np.asarray(panos, np.int64), "log_seen": np.asarray(seen_log, np.float32),
-         "names": np.array([p.stem for p in files]), "key": np.array(key),
-         "seconds": np.array(time.perf_counter() - t0)}
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    tmp = cache.with_suffix(".tmp.npz")
-    np.savez(tmp, **d)
-    tmp.replace(cache)
-    return d
+    return feats, targets, groups, panos, seen_log
 
 
 def _huber(pred, tgt, delta: float = 0.5):
