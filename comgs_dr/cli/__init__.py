@@ -3,12 +3,14 @@
 Commands (``_SUBCOMMANDS``, in this order; tests/test_config_cli.py checks this list
 against the parser):
 
+    sfm                camera poses from photos or a video (pycolmap) -> a COLMAP folder
     make-dataset       render synthetic ground truth: object, scene, llff, composition
     demo               the whole pipeline on embedded procedural inputs
     report             one self-contained HTML report of a run folder
     reconstruct        step 1: surfel radiance and geometry from images
     render             render a reconstruction run and write metrics
     export-mesh        a triangle mesh of a reconstruction
+    cut                the object standing on a support plane, cut out of a scene run
     decompose          step 2: materials, env map and SOPs from a step-1 run
     relight            render a step-2 run under a new environment map
     estimate-light     an HDR environment map at a placement in a surfel scene
@@ -31,6 +33,7 @@ import argparse
 import sys
 
 from comgs_dr.cli.composition import _add_compose, _add_render_comp
+from comgs_dr.cli.cut import _add_cut
 from comgs_dr.cli.datasets import _add_demo, _add_make_dataset, _add_report
 from comgs_dr.cli.lighting import (
     _add_compare_light,
@@ -46,11 +49,12 @@ from comgs_dr.cli.objects import (
     _add_relight,
     _add_render,
 )
+from comgs_dr.cli.sfm import _add_sfm
 from comgs_dr.core.config import numeric_problem
 from comgs_dr.train.interrupt import TrainingInterrupted
 
-_SUBCOMMANDS = (_add_make_dataset, _add_demo, _add_report, _add_reconstruct, _add_render,
-                _add_export_mesh, _add_decompose, _add_relight, _add_estimate_light, _add_compare_light,
+_SUBCOMMANDS = (_add_sfm, _add_make_dataset, _add_demo, _add_report, _add_reconstruct,
+                _add_render, _add_export_mesh, _add_cut, _add_decompose, _add_relight, _add_estimate_light, _add_compare_light,
                 _add_train_completion, _add_train_light_head, _add_train_scene_label,
                 _add_compose, _add_render_comp)
 
