@@ -19,7 +19,7 @@ import argparse
 import dataclasses
 import typing
 
-from comgs_dr.core.config import add_config_arguments, config_overrides
+from comgs_dr.core.config import _parse_bool, add_config_arguments, config_overrides
 
 _SCALARS = (int, float, str, bool)
 _VALUE = object()                 # Spelling.const of a value flag (not a switch)
@@ -134,15 +134,6 @@ def _element(hint):
             if len(elems) == 1 and (tp := elems.pop()) in _SCALARS:
                 return tp
     return None
-
-
-def _parse_bool(s: str) -> bool:
-    v = s.strip().lower()
-    if v in ("1", "true", "yes", "on"):
-        return True
-    if v in ("0", "false", "no", "off"):
-        return False
-    raise argparse.ArgumentTypeError(f"expected true/false, got {s!r}")
 
 
 def _help(text: str | None, default, name: str, presets: dict) -> str:
