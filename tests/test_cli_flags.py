@@ -19,9 +19,12 @@ from comgs_dr.stages.export_mesh import MeshConfig
 from comgs_dr.stages.reconstruct import RadianceConfig
 from comgs_dr.stages.relight import RelightConfig
 from comgs_dr.stages.render_run import RenderConfig
+from comgs_dr.stages.cut_object import CutConfig
+from comgs_dr.stages.sfm import SfmConfig
 
 #: (argv up to the flags, config, fields the command sets itself)
 COMMANDS = [
+    (["sfm", "PHOTOS", "--out", "D"], SfmConfig, set()),
     (["make-dataset", "object", "--out", "D"], ObjectDatasetConfig, {"out_dir", "variant"}),
     (["make-dataset", "scene", "--out", "D"], SceneDatasetConfig, set()),
     (["make-dataset", "llff", "--out", "D"], LLFFDatasetConfig, {"out_dir", "variant"}),
@@ -32,6 +35,7 @@ COMMANDS = [
     (["reconstruct", "DATA", "--out", "RUN"], RadianceConfig, {"preset"}),
     (["render", "RUN"], RenderConfig, set()),
     (["export-mesh", "RUN", "--out", "m.ply"], MeshConfig, set()),
+    (["cut", "RUN", "--out", "O"], CutConfig, set()),
     (["decompose", "RUN"], MaterialConfig, set()),
     (["relight", "RUN", "--envmap", "e.exr"], RelightConfig, set()),
 ]
@@ -78,6 +82,40 @@ def test_every_scalar_field_is_a_flag_that_parses_into_the_config(argv, cls, own
         got = {k: v for k, v in field_overrides(parser.parse_args(argv + typed), cls).items()
                if k not in own}
         assert got == {name: expect} and type(got[name]) is type(expect), (flag, got)
+
+
+def test_reconstruct_takes_every_sfm_flag():
+    """``comgs reconstruct PHOTOS`` runs SfM first: every scalar SfmConfig field is a flag of
+    it, spelled as ``comgs sfm`` spells it unless reconstruct has that flag (``--sfm-seed``),
+    and parses into the SfmConfig (``cli.sfm.sfm_flags_config``); the preset is left to the
+    input (object for a dataset, scene for photos)."""
+    from comgs_dr.cli.sfm import sfm_flags_config
+    parser = cli.build_parser()
+    argv = ["reconstruct", "DATA", "--out", "RUN"]
+    sub = _command_parser(parser, argv)
+    by_flag = {s: a for a in sub._actions for s in a.option_strings}
+    assert sfm_flags_config(parser.parse_args(argv)) == (SfmConfig(), [])
+    assert parser.parse_args(argv).preset is None and parser.parse_args(argv).sfm_out is None
+    for name, hint in typing.get_type_hints(SfmConfig).items():
+        tp = _scalar(hint)
+        flag = "--" + name.replace("_", "-")
+        if flag in by_flag and by_flag[flag].dest != "sfm_" + name:
+            flag = "--sfm-" + name.replace("_", "-")             # reconstruct's own --seed
+        assert by_flag[flag].dest == "sfm_" + name, flag
+        value, expect = {int: ("3", 3), float: ("0.25", 0.25), bool: ("false", False),
+                         str: ("x", "x")}[tp]
+        if by_flag[flag].choices:
+            value = expect = list(by_flag[flag].choices)[-1]
+        if name in ("max_size", "max_features"):                    # >= 64
+            value, expect = "640", 640
+        cfg, typed = sfm_flags_config(parser.parse_args(argv + [flag, value]))
+        assert typed == [name] and getattr(cfg, name) == expect, flag
+    args = parser.parse_args(argv + ["--seed", "4", "--sfm-seed", "5", "--max-size", "800",
+                                     "--sfm-out", "S"])
+    assert field_overrides(args, RadianceConfig) == {"seed": 4}
+    assert sfm_flags_config(args)[0] == SfmConfig(seed=5, max_size=800) and args.sfm_out == "S"
+    with pytest.raises(ValueError, match="max_size"):
+        sfm_flags_config(parser.parse_args(argv + ["--max-size", "10"]))
 
 
 def test_old_spellings_parse_into_the_same_fields():

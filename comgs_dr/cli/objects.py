@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from comgs_dr import set_variant
 from comgs_dr.cli._flags import Spelling, add_config_flags, field_overrides
+from comgs_dr.cli.sfm import add_sfm_flags, sfm_flags_config, sfm_if_photos
 from comgs_dr.core.config import shared_options
 from comgs_dr.data.load import load_dataset
 from comgs_dr.shading.shade import SAMPLINGS
@@ -44,16 +45,23 @@ def _add_reconstruct(sub) -> None:
     p = sub.add_parser(
         "reconstruct", parents=[shared_options(out=dict(required=True, metavar="RUN_DIR"))],
         help="step 1: surfel radiance + geometry from images",
-        description="Fit surfels to a NeRF-synthetic, COLMAP or LLFF folder. Resumes "
-                    "from RUN_DIR/checkpoint.npz when present. Every scalar field "
-                    "of RadianceConfig is a flag (--lambda-d2n, --lr-means, ...).")
-    p.add_argument("data", metavar="DATA_DIR")
+        description="Fit surfels to a NeRF-synthetic, COLMAP or LLFF folder, or to a folder "
+                    "of photos or a video: `comgs sfm` then runs first into RUN_DIR/sfm "
+                    "(or --sfm-out; reused when complete) and the scene preset is the "
+                    "default. Resumes from RUN_DIR/checkpoint.npz when present. Every scalar "
+                    "field of RadianceConfig is a flag (--lambda-d2n, --lr-means, ...), and "
+                    "every one of SfmConfig (--max-size, --matching, ...).")
+    p.add_argument("data", metavar="DATA_DIR",
+                   help="a dataset (NeRF transforms, COLMAP, LLFF), a folder of photos or a "
+                        "video file")
     # preset picks the RadianceConfig.from_preset base the field flags then override
     kind = p.add_mutually_exclusive_group()
     kind.add_argument("--object", dest="preset", action="store_const", const="object",
-                      help="object preset (masks, visual-hull init, mask loss; default)")
+                      help="object preset (masks, visual-hull init, mask loss; default for "
+                           "a dataset)")
     kind.add_argument("--scene", dest="preset", action="store_const", const="scene",
-                      help="scene preset (dataset points or random init, no mask loss)")
+                      help="scene preset (dataset points or random init, no mask loss; "
+                           "default for photos or a video)")
     # not RadianceConfig fields: how the dataset is loaded (load_dataset)
     p.add_argument("--resolution-scale", "-r", type=int, default=1, choices=(1, 2, 4, 8))
     p.add_argument("--white-background", action="store_true")
@@ -65,7 +73,9 @@ def _add_reconstruct(sub) -> None:
                         "no new surfels; useful after a random init)")
     add_config_flags(p, RadianceConfig, RECONSTRUCT_FLAGS, exclude=("preset", "densify"),
                      presets=RECON_PRESETS)
-    p.set_defaults(func=_cmd_reconstruct, preset="object")
+    add_sfm_flags(p)
+    # preset None: object for a dataset, scene for photos (_cmd_reconstruct)
+    p.set_defaults(func=_cmd_reconstruct, preset=None)
 
 
 def _cmd_reconstruct(args) -> int:
@@ -73,10 +83,16 @@ def _cmd_reconstruct(args) -> int:
     kw = field_overrides(args, RadianceConfig)
     if args.densify_scaled:
         kw["densify"] = scaled_density_schedule(kw.get("iterations", RadianceConfig.iterations))
-    cfg = RadianceConfig.from_preset(args.preset, **kw)      # flags checked before the data
-    data = load_dataset(args.data, white_background=args.white_background,
+    RadianceConfig.from_preset(args.preset or "object", **kw)  # flags checked before any work
+    sfm_flags_config(args)
+    data_dir, sfm = sfm_if_photos(args.data, args.out, args, progress=not args.quiet)
+    preset = args.preset or ("scene" if sfm else "object")
+    if sfm and not args.preset:
+        print("photos have no masks: the scene preset (--object to override)")
+    cfg = RadianceConfig.from_preset(preset, **kw)
+    data = load_dataset(data_dir, white_background=args.white_background,
                         resolution_scale=args.resolution_scale)
-    write_run_info(args.out, args.data, args.preset, args.resolution_scale, args.white_background)
+    write_run_info(args.out, data_dir, preset, args.resolution_scale, args.white_background)
     s = train_radiance(data, args.out, cfg, progress=not args.quiet)
     print(f"step 1 done: {s['iterations']} iterations in {s['train_seconds']:.0f} s, {s['surfels']} surfels, "
           f"test PSNR {s['psnr_test']:.2f} dB, background {s['background']} -> "

@@ -7,15 +7,27 @@ Flags come from :class:`~comgs_dr.stages.sfm.SfmConfig` (``core.config``), ``--o
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
+from pathlib import Path
 
 from comgs_dr.core.config import (
+    _parse_bool,
     add_config_arguments,
     config_overrides,
     numeric_problem,
     shared_options,
 )
-from comgs_dr.stages.sfm import CAMERA_MODELS, CAMERA_MODES, MATCHING, SfmConfig, run_sfm
+from comgs_dr.stages.sfm import (
+    CAMERA_MODELS,
+    CAMERA_MODES,
+    MATCHING,
+    SfmConfig,
+    ensure_sfm,
+    is_unposed_capture,
+    run_sfm,
+)
+from comgs_dr.data.photos import VIDEO_EXTENSIONS
 
 DESCRIPTION = (
     "Camera poses and sparse points from a folder of photos or a video (.mp4/.mov) with "
@@ -63,6 +75,90 @@ def _cmd_sfm(args) -> int:
         print(f"  not registered: {len(r['dropped_images'])} image(s), listed in sfm.json "
               "(dropped_images)")
     return 0
+
+
+# ----------------------------------------------------------------------------- inside other commands
+
+#: the SfmConfig fields with a fixed set of values
+CHOICES = {"matching": MATCHING, "camera_model": CAMERA_MODELS, "camera_mode": CAMERA_MODES}
+#: ``dest`` of an SfmConfig field's flag inside another command (``sfm_max_size``)
+PREFIX = "sfm_"
+
+
+def add_sfm_flags(p: argparse.ArgumentParser, what: str = "DATA_DIR") -> None:
+    """SfM flags for a command that also takes a folder of photos or a video (``comgs
+    reconstruct PHOTOS``): ``--sfm-out DIR`` and one flag per scalar SfmConfig field, spelled
+    as ``comgs sfm`` spells it (``--max-size``, ``--matching``) unless ``p`` already has that
+    flag, then ``--sfm-<field>`` (``--sfm-seed``). Call it after the command's own flags."""
+    taken = {s for a in p._actions for s in a.option_strings}
+    g = p.add_argument_group(f"structure from motion (when {what} is a folder of photos or a "
+                             "video: `comgs sfm` runs first)")
+    g.add_argument("--sfm-out", dest="sfm_out", metavar="DIR", default=None,
+                   help="where the SfM output goes (default OUT/sfm); an earlier complete one "
+                        "of the same photos and settings is reused")
+    defaults = SfmConfig()
+    for f in dataclasses.fields(SfmConfig):
+        default = getattr(defaults, f.name)
+        tp = type(default)
+        flag = "--" + f.name.replace("_", "-")
+        flags = [flag] if flag not in taken else ["--sfm-" + f.name.replace("_", "-")]
+        kw = dict(choices=CHOICES[f.name]) if f.name in CHOICES else dict(
+            type=_parse_bool if tp is bool else tp, metavar=tp.__name__.upper())
+        g.add_argument(*flags, dest=PREFIX + f.name, default=None,
+                       help=f"`comgs sfm --{f.name.replace('_', '-')}` (default {default!r})",
+                       **kw)
+
+
+def sfm_flags_config(args) -> tuple[SfmConfig, list[str]]:
+    """(the SfmConfig of :func:`add_sfm_flags`' flags, the fields typed); ValueError for a
+    bad value, before any work."""
+    typed = {f.name: getattr(args, PREFIX + f.name) for f in dataclasses.fields(SfmConfig)
+             if getattr(args, PREFIX + f.name, None) is not None}
+    return SfmConfig(**typed), sorted(typed)
+
+
+def sfm_if_photos(source, out_dir, args, progress: bool = True) -> tuple[Path, dict | None]:
+    """(the dataset to load, the SfM report or None): ``source`` itself when it is a dataset;
+    for a folder of photos or a video (``stages.sfm.is_unposed_capture``) the SfM output in
+    ``args.sfm_out`` or ``out_dir/sfm``, made by ``comgs sfm`` (or an earlier complete one
+    reused), saying which on stdout."""
+    cfg, typed = sfm_flags_config(args)
+    sfm_out = getattr(args, "sfm_out", None)
+    _check_source(Path(source))
+    if not is_unposed_capture(source):
+        if typed or sfm_out:
+            print(f"note: {source} is a dataset with poses: the SfM flags "
+                  f"({', '.join(['sfm_out'] * bool(sfm_out) + typed)}) are not used",
+                  file=sys.stderr)
+        return Path(source), None
+    sfm_out = Path(sfm_out) if sfm_out else Path(out_dir) / "sfm"
+    kind = "a video" if Path(source).is_file() else "photos without poses"
+    say = (lambda s: print(s, flush=True)) if progress else (lambda s: None)
+    report, reused = ensure_sfm(source, sfm_out, cfg, progress=progress, say=say)
+    how = ("reused the earlier structure from motion in" if reused
+           else "ran structure from motion (`comgs sfm`) into")
+    print(f"{source} is {kind}: {how} {sfm_out}: {report['registered']}/{report['given']} "
+          f"images registered, mean reprojection error "
+          f"{report['mean_reprojection_error_px']:.3f} px"
+          + ("" if reused else f", {report['seconds']['total']:.0f} s"), flush=True)
+    return sfm_out, {**report, "reused": reused, "dir": str(sfm_out)}
+
+
+def _check_source(p: Path) -> None:
+    """ValueError naming ``p`` when it is neither a dataset, a folder of photos nor a video."""
+    from comgs_dr.data.load import detect_format
+    from comgs_dr.data.types import DatasetError
+    what = ("a dataset folder (NeRF transforms, COLMAP, LLFF), a folder of photos or a video "
+            f"({', '.join(VIDEO_EXTENSIONS)})")
+    if not p.exists():
+        raise FileNotFoundError(f"{p}: no such file or folder; give {what}")
+    if p.is_file() and not is_unposed_capture(p) and p.suffix.lower() not in (".json", ".npy"):
+        raise ValueError(f"{p}: not {what}")
+    if p.is_dir() and not is_unposed_capture(p):
+        try:
+            detect_format(p)
+        except DatasetError as e:
+            raise ValueError(f"{e}; nor does it hold photos for `comgs sfm`") from None
 
 
 def main(argv: list[str] | None = None) -> int:

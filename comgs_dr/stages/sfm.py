@@ -26,6 +26,7 @@ remain, no matched pairs, nothing registered, a largest model holding fewer than
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import shutil
@@ -180,7 +181,8 @@ def run_sfm(source, out, cfg: SfmConfig | None = None, progress: bool = True,
     check_paths(run)
     import pycolmap  # heavy: loaded only when SfM runs
     run.report.update(source=str(run.source), out=str(run.out), pycolmap=pycolmap.__version__,
-                      threads=run.threads, config=asdict(cfg))
+                      threads=run.threads, config=asdict(cfg),
+                      source_fingerprint=source_fingerprint(run.source))
     t_all = time.perf_counter()
     with colmap_quiet(pycolmap, not cfg.colmap_log):
         pycolmap.set_random_seed(cfg.seed)
@@ -191,6 +193,65 @@ def run_sfm(source, out, cfg: SfmConfig | None = None, progress: bool = True,
         best = keep_largest(run, models)
         undistort(run, pycolmap, best)
     return write_report(run, best, t_all)
+
+
+# ----------------------------------------------------------------------------- reuse
+
+#: SfmConfig fields that do not change the result (an earlier output is reused across them)
+RESULT_NEUTRAL = ("threads", "keep_work", "colmap_log")
+
+
+def source_fingerprint(source) -> str:
+    """A digest of the input: name, size and modification time of every photo of the folder
+    (or of the video file); a changed, added or removed photo changes it."""
+    p = Path(source)
+    files = [p] if p.is_file() else photos.list_images(p)[0]
+    parts = [(f.name, f.stat().st_size, f.stat().st_mtime_ns) for f in files]
+    return hashlib.sha1(json.dumps(parts).encode()).hexdigest()[:16]
+
+
+def reusable_output(source, out, cfg: SfmConfig | None = None) -> tuple[dict | None, str]:
+    """(the report of ``out``, "") when ``out`` is a complete ``comgs sfm`` output of this
+    ``source`` with this ``cfg`` (``RESULT_NEUTRAL`` fields aside), else (None, why not)."""
+    cfg, out, src = cfg or SfmConfig(), Path(out), Path(source)
+    path = out / REPORT
+    if not path.is_file():
+        return None, f"no {REPORT} in {out}"
+    try:
+        r = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        return None, f"{path} is unreadable ({e})"
+    if not isinstance(r, dict) or not (out / "images").is_dir() or \
+            not (out / "sparse" / "0").is_dir() or "registered" not in r:
+        return None, f"{out} holds an incomplete SfM output"
+    if src.is_dir():
+        try:
+            src = photo_folder(src)
+        except SfmError as e:
+            return None, str(e)
+    if r.get("source_fingerprint") != source_fingerprint(src):
+        return None, f"the photos in {src} differ from those {out} was made from"
+    old = {k: v for k, v in (r.get("config") or {}).items() if k not in RESULT_NEUTRAL}
+    new = {k: v for k, v in asdict(cfg).items() if k not in RESULT_NEUTRAL}
+    if old != new:
+        diff = ", ".join(f"{k} {old.get(k)!r} -> {v!r}" for k, v in new.items()
+                         if old.get(k) != v)
+        return None, f"the settings differ from {out}'s ({diff})"
+    return r, ""
+
+
+def ensure_sfm(source, out, cfg: SfmConfig | None = None, progress: bool = True,
+               say: Callable[[str], None] | None = None) -> tuple[dict, bool]:
+    """(report, reused): ``out``'s report when it is a complete output of this ``source``
+    and ``cfg`` (:func:`reusable_output`), else :func:`run_sfm` into ``out`` (an earlier
+    output there is replaced). What lets ``comgs reconstruct PHOTOS`` be run again."""
+    say = say or ((lambda s: print(s, flush=True)) if progress else (lambda s: None))
+    report, why = reusable_output(source, out, cfg)
+    if report is not None:
+        return report, True
+    if Path(out, REPORT).is_file() or Path(out, WORK).is_dir():
+        say(f"sfm: redoing {out}: {why}")
+    return run_sfm(source, out, cfg, progress=progress, say=say), False
 
 
 # ----------------------------------------------------------------------------- setup
