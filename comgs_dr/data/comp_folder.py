@@ -1,5 +1,6 @@
 """A composition folder (``comgs compose`` → ``comgs render-comp``): its manifest, the
-Mitsuba scene it describes, and NeRF-synthetic camera files.
+Mitsuba scene it describes, and its cameras (NeRF transforms files, dataset folders) with
+full pinhole intrinsics.
 
 ``COMP_DIR/composition.json``::
 
@@ -22,7 +23,7 @@ from xml.sax.saxutils import quoteattr
 import mitsuba as mi
 import numpy as np
 
-from comgs_dr.core.cameras import from_matrix
+from comgs_dr.core.cameras import pinhole
 from comgs_dr.data.types import clip_planes
 
 MANIFEST = "composition.json"
@@ -162,60 +163,116 @@ def write_xml(path, comp_dir, manifest: dict, variant: str = "sop") -> Path:
     return p
 
 
+def camera(name: str, to_world, width: int | None, height: int | None, fx=None, fy=None,
+           cx=None, cy=None, **extra) -> dict:
+    """A camera dict: {'name', 'to_world' (Mitsuba camera-to-world, reconstruction frame),
+    'width', 'height', 'fx', 'fy', 'cx', 'cy' (OpenCV/COLMAP pixel intrinsics of that
+    size, corner-origin), 'fov_x_deg' (2 atan(W / 2fx), for what reads only that)}.
+    ``width`` None: the size is not known yet (:func:`sized` sets it, the intrinsics
+    following from ``extra['intrinsic_keys']``, a transforms file's keys)."""
+    c = {"name": str(name), "to_world": np.asarray(to_world, np.float64), "width": width,
+         "height": height, "fx": fx, "fy": fy, "cx": cx, "cy": cy, **extra}
+    if width is not None:
+        c["width"], c["height"] = int(width), int(height)
+        c["fx"], c["fy"], c["cx"], c["cy"] = (float(v) for v in (fx, fy, cx, cy))
+        c["fov_x_deg"] = float(np.degrees(2.0 * np.arctan(0.5 * c["width"] / c["fx"])))
+    return c
+
+
+def sized(cam: dict, width: int, height: int) -> dict:
+    """``cam`` for a ``width`` × ``height`` image (a new dict). A camera of unknown size
+    takes its transforms file's keys at that size (pixel keys are that image's pixels, as
+    step 1 reads them). A sized one is rescaled: at the same aspect (within 1 %) each axis
+    by its own factor (the image was resampled); at another aspect the horizontal field of
+    view, the pixel aspect fy/fx and the principal point's relative place are kept."""
+    w, h = int(width), int(height)
+    if cam["width"] is None:
+        from comgs_dr.data.nerf import _intrinsics
+        keys = cam.get("intrinsic_keys")
+        if keys is None:
+            raise ValueError(f"camera {cam['name']}: image size unknown (give --res or --gt-dir)")
+        fx, fy, cx, cy = _intrinsics(keys, cam.get("where", cam["name"]))(w, h)
+    else:
+        sx, sy = w / cam["width"], h / cam["height"]
+        fx, cx, cy = cam["fx"] * sx, cam["cx"] * sx, cam["cy"] * sy
+        fy = cam["fy"] * (sy if abs(sx - sy) <= 0.01 * max(sx, sy) else sx)
+    _check_intrinsics(cam.get("where", f"camera {cam['name']}"), fx, fy, cx, cy, w)
+    rest = {k: v for k, v in cam.items() if k not in ("intrinsic_keys",)}
+    return camera(cam["name"], cam["to_world"], w, h, fx, fy, cx, cy,
+                  **{k: v for k, v in rest.items() if k not in _CAMERA_KEYS})
+
+
+_CAMERA_KEYS = ("name", "to_world", "width", "height", "fx", "fy", "cx", "cy", "fov_x_deg")
+
+
+def _check_intrinsics(where, fx, fy, cx, cy, w) -> None:
+    if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0):
+        raise ValueError(f"{where}: invalid intrinsics fx={fx}, fy={fy}, cx={cx}, cy={cy} "
+                         f"(focal lengths must be positive and finite)")
+    if not 2.0 * np.degrees(np.arctan(0.5 * w / fx)) > 1e-6:
+        raise ValueError(f"{where}: focal length fx={fx:.4g} px gives no field of view for a "
+                         f"{w} px wide image")
+
+
 def read_cameras(path, world_from_source=None, res=None) -> list[dict]:
-    """Frames of a NeRF-synthetic ``transforms*.json``: [{'name', 'to_world' (Mitsuba,
-    reconstruction frame), 'fov_x_deg', 'width', 'height'}]. Image size: ``res`` (int or
-    (w, h)), else the file's ``w``/``h``; ValueError when neither is known."""
+    """Frames of a NeRF ``transforms*.json`` as :func:`camera` dicts (reconstruction frame).
+    Intrinsics as step 1 reads them (``data.nerf``): ``camera_angle_x`` (and
+    ``camera_angle_y``) or ``fl_x``/``fl_y``/``cx``/``cy`` in pixels of a ``w`` × ``h``
+    image, top-level or per frame (a frame's keys win); non-zero distortion refused.
+    Image size: ``res`` (int or (w, h); the intrinsics rescaled, :func:`sized`), else the
+    file's ``w``/``h``, else unknown until the ground truth gives it. ValueError naming the
+    file and frame for what cannot be read."""
+    from comgs_dr.data.nerf import _DISTORTION_KEYS, _INTRINSIC_KEYS, _intrinsics
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"camera file not found: {p}")
     d = _read_json(p)
-    try:
-        fov = float(np.degrees(float(d["camera_angle_x"])))
-        frames = d["frames"]
-    except (KeyError, TypeError, ValueError, OverflowError) as e:
-        raise ValueError(f"{p}: not a NeRF-synthetic camera file (camera_angle_x, frames[]): "
-                         f"{e!r}") from None
-    if not 0.0 < fov < 180.0:
-        raise ValueError(f"{p}: camera_angle_x must be in (0, pi) radians, got "
-                         f"{d['camera_angle_x']!r:.40}")
+    frames = d.get("frames")
     if not isinstance(frames, list) or not frames:
-        raise ValueError(f"{p}: 'frames' must be a non-empty list")
+        raise ValueError(f"{p}: not a NeRF camera file: 'frames' must be a non-empty list")
     W = np.eye(4) if world_from_source is None else np.asarray(world_from_source, np.float64)
-    if res is not None:
-        w, h = (res, res) if isinstance(res, int) else res
-    elif "w" in d and "h" in d:
-        try:
-            w, h = int(d["w"]), int(d["h"])
-        except (TypeError, ValueError, OverflowError):
-            w = h = 0
-        if w < 1 or h < 1 or (w, h) != (d["w"], d["h"]):
-            raise ValueError(f"{p}: 'w'/'h' must be positive integers, got {d['w']!r:.20}, "
-                             f"{d['h']!r:.20}")
-    else:
-        w = h = None
+    res_wh = None if res is None else (res, res) if isinstance(res, int) else tuple(res)
+    keys = _INTRINSIC_KEYS + _DISTORTION_KEYS
+    top = {k: d[k] for k in keys if k in d}
     out = []
     for i, f in enumerate(frames):
+        if not isinstance(f, dict):
+            raise ValueError(f"{p}: frame {i} must be an object")
         try:
             m = np.asarray(f["transform_matrix"], np.float64).reshape(4, 4)
             name = Path(str(f["file_path"])).name
         except (KeyError, TypeError, ValueError, OverflowError) as e:
             raise ValueError(f"{p}: frame {i} needs file_path and a 4×4 transform_matrix "
                              f"({e!r:.80})") from None
+        where = f"{p}: frame {i} ({name})"
         if not np.all(np.isfinite(m)):
-            raise ValueError(f"{p}: frame {i} ({name}) has a non-finite transform_matrix")
-        out.append({"name": name, "to_world": W @ m @ GL_TO_MITSUBA, "fov_x_deg": fov,
-                    "width": w, "height": h})
+            raise ValueError(f"{where} has a non-finite transform_matrix")
+        c = {**top, **{k: f[k] for k in keys if k in f}}
+        at = _intrinsics(c, where)                  # DatasetError (a ValueError) on bad keys
+        for k in ("w", "h"):
+            if k in c and (isinstance(c[k], bool) or float(c[k]) != int(float(c[k]))):
+                raise ValueError(f"{where}: '{k}' must be a positive integer, got {c[k]!r:.20}")
+        cam = camera(name, W @ m @ GL_TO_MITSUBA, None, None, intrinsic_keys=c, where=where)
+        if "w" in c and "h" in c:
+            cam = sized(cam, int(float(c["w"])), int(float(c["h"])))
+        else:
+            _check_intrinsics(where, *at(1000, 1000), 1000)     # early: a nominal size
+            cam["fov_x_deg"] = float(np.degrees(c["camera_angle_x"])) \
+                if "camera_angle_x" in c else None
+        out.append(sized(cam, *res_wh) if res_wh else cam)
     return out
 
 
 def dataset_cameras(path, res=None, world_from_source=None) -> list[dict]:
-    """Cameras of a captured dataset, as :func:`read_cameras` gives them: the test views of a
-    folder the loaders read (NeRF-synthetic, COLMAP, LLFF; or its ``poses_bounds.npy`` /
+    """Cameras of a captured dataset, as :func:`camera` dicts: the test views of a folder
+    the loaders read (NeRF-synthetic, COLMAP, LLFF; or its ``poses_bounds.npy`` /
     transforms file), every view when it holds no test split. They are loaded as step 1
     loads them, so they are already in the reconstruction's frame (no
-    ``world_from_source``). Image size: ``res`` (int or (w, h)), else the dataset's. A
-    principal point off the centre is not modelled (as in step 1's rendering).
+    ``world_from_source``), with each image's own intrinsics: focal length and principal
+    point (COLMAP's cx, cy; a NeRF frame's; LLFF's centre), at the image's size (``res``:
+    int or (w, h), rescaled as :func:`sized` does). Step 1's cameras have square pixels
+    (its loaders accept fx, fy within 1 % and keep fx), so these do too; a transforms file
+    (:func:`read_cameras`) keeps fy.
     ``world_from_source`` (the composition's): ValueError when the dataset's differs, i.e.
     the folder is not the one the scene was reconstructed from. Frame names are the views'
     file names without extension (as :func:`read_cameras` names a transforms file's frames),
@@ -230,15 +287,12 @@ def dataset_cameras(path, res=None, world_from_source=None) -> list[dict]:
                          f"composition's: it is not the dataset the scene was reconstructed "
                          f"from; give that one, or a transforms.json in its frame")
     views = data.test or data.train
-    if res is not None:
-        w, h = (res, res) if isinstance(res, int) else res
+    res_wh = None if res is None else (res, res) if isinstance(res, int) else tuple(res)
     out = []
     for v in views:
         c = v.camera
-        out.append({"name": str(v.name), "to_world": np.asarray(c.to_world, np.float64),
-                    "fov_x_deg": float(c.fov_x_deg),
-                    "width": c.width if res is None else w,
-                    "height": c.height if res is None else h})
+        cam = camera(str(v.name), c.to_world, c.width, c.height, c.fx, c.fx, c.cx, c.cy)
+        out.append(sized(cam, *res_wh) if res_wh else cam)
     from comgs_dr.data.images import IMAGE_EXTENSIONS
     strip = lambda n: str(Path(n).with_suffix("")) \
         if Path(n).suffix.lower() in IMAGE_EXTENSIONS else n                     # noqa: E731
@@ -255,7 +309,7 @@ def dataset_cameras(path, res=None, world_from_source=None) -> list[dict]:
 
 
 def camera_source(path, world_from_source=None, res=None) -> list[dict]:
-    """``render-comp --cameras``: a NeRF-synthetic ``transforms*.json`` (:func:`read_cameras`,
+    """``render-comp --cameras``: a NeRF ``transforms*.json`` (:func:`read_cameras`,
     in the scene dataset's frame) or a dataset folder / ``poses_bounds.npy``
     (:func:`dataset_cameras`). A folder holding a ``transforms_test.json`` but no training
     split (``make-dataset composition``'s ``comp/``) means that camera file."""
@@ -271,13 +325,15 @@ def camera_source(path, world_from_source=None, res=None) -> list[dict]:
 
 
 def sensor_dict(cam: dict, pixel_format: str = "rgb", clip: dict | None = None) -> dict:
-    """Sensor of a camera of :func:`read_cameras`; ``clip``: near/far planes
-    (:func:`clip_for`)."""
+    """Sensor reproducing a :func:`camera` dict's pinhole (``core.cameras.pinhole``:
+    Mitsuba's ``perspective`` with its principal point offsets, or ``comgs_pinhole`` when
+    fx ≠ fy); ``clip``: near/far planes (:func:`clip_for`)."""
     if cam["width"] is None:
         raise ValueError(f"camera {cam['name']}: image size unknown (give --res or --gt-dir)")
-    s = from_matrix(cam["to_world"], cam["fov_x_deg"], (cam["width"], cam["height"]))
+    s = pinhole(cam["to_world"], cam["width"], cam["height"], cam["fx"], cam["fy"],
+                cam["cx"], cam["cy"], **(clip or {}))
     s["film"]["pixel_format"] = pixel_format
-    return {**s, **(clip or {})}
+    return s
 
 
 def clip_for(manifest: dict, cams: list[dict]) -> dict:
