@@ -12,6 +12,7 @@ import argparse
 from comgs_dr import set_variant
 from comgs_dr.cli._flags import Spelling, add_config_flags, field_overrides, preset_differences
 from comgs_dr.core.config import shared_options
+from comgs_dr.data.exposure import resolve_exposure
 from comgs_dr.lighting.scene_label import LABEL_CHOICES
 from comgs_dr.stages.compose import PRESETS as COMPOSE_PRESETS
 from comgs_dr.stages.compose import ComposeConfig, compose, compose_config, summary_text
@@ -68,18 +69,44 @@ def _add_compose(sub) -> None:
     add_config_flags(p, ComposeConfig,
                      presets=preset_differences(COMPOSE_PRESETS, ComposeConfig()))
     add_config_flags(p, PlacementEstimateConfig, ESTIMATION_FLAGS)
+    _add_exposure_flags(p)
     p.set_defaults(func=_cmd_compose)
+
+
+def _add_exposure_flags(p) -> None:
+    """How the object's capture's exposure and white balance meet the scene's
+    (``data.exposure``; docs/exposure.md). None given: gain 1, assumed and said so."""
+    g = p.add_argument_group(
+        "exposure and white balance (the object's photos vs the scene's; default gain 1, "
+        "assumed: see docs/exposure.md)").add_mutually_exclusive_group()
+    g.add_argument("--exposure-gain", dest="exposure_gain", nargs=3, type=float, default=None,
+                   metavar=("R", "G", "B"),
+                   help="scene-capture linear units per object-capture unit; multiplies each "
+                        "object's albedo")
+    g.add_argument("--white-patch", dest="white_patch", nargs=2, default=None,
+                   metavar=("OBJECT_PHOTO[:X0,Y0,X1,Y1]", "SCENE_PHOTO[:X0,Y0,X1,Y1]"),
+                   help="one reference surface (a grey card, the floor the object stood on) in "
+                        "a photo of the object's capture and one of the scene's, lit alike: "
+                        "gain = its linear colour in the scene photo / in the object photo")
+    g.add_argument("--grey-world", dest="grey_world", action="store_true",
+                   help="white balance only, from each object's mean albedo taken to be grey "
+                        "(a coloured object is made grey on average)")
 
 
 def _cmd_compose(args) -> int:
     set_variant(args.mitsuba_variant)
     objects = _object_runs(args.object)
     cfg = compose_config(args.preset, args.shadow_probes, **field_overrides(args, ComposeConfig))
+    exposure = "grey-world" if args.grey_world else resolve_exposure(args.exposure_gain,
+                                                                     args.white_patch)
     estimator = placement_estimator(args.scene_run, args.out, args.env, say=print,
                                     **field_overrides(args, PlacementEstimateConfig))
     s = compose(args.scene_run, objects, args.placement, args.out, env=args.env,
-                estimator=estimator, cfg=cfg, progress=not args.quiet)
+                estimator=estimator, cfg=cfg, progress=not args.quiet, exposure=exposure)
     print(summary_text(s, cfg, args.out))
+    for name, e in s["exposure"].items():
+        print(f"{name}: exposure gain {e['gain']} ({e['method']}, {e['exposure_ev']:+.2f} EV); "
+              f"assumed: {e['assumed']}")
     return 0
 
 
@@ -104,6 +131,15 @@ RENDER_COMP_FLAGS = {
     "res": Spelling(nargs="+", type=int, metavar=("W", "H"), help="image size (None: the "
                     "ground truth's, else the camera file's w/h)"),
     "rays": Spelling(metavar="N", help="S_r, rays per pixel (None: the integrator's 256)"),
+    "path": Spelling(metavar="orbit|spiral|FILE", help="render a camera path, not capture "
+                     "views: orbit (a circle around the placed objects at the capture "
+                     "cameras' mean distance and elevation), spiral (its height and distance "
+                     "swinging) or a NeRF transforms.json; frames path_0000.png ..., no "
+                     "ground truth; placed by --cameras, else the scene run's dataset"),
+    "frames": Spelling(metavar="N", help="path frames (None: 60, or the file's count)"),
+    "video": Spelling(metavar="OUT.mp4", help="also write the frames as an mp4 "
+                      "(imageio-ffmpeg)"),
+    "fps": Spelling(metavar="FPS", help="frames per second of --video"),
 }
 
 
@@ -111,19 +147,23 @@ def _add_render_comp(sub) -> None:
     # --variant is the composite variant here: the Mitsuba variant is --mitsuba-variant only
     p = sub.add_parser(
         "render-comp", parents=[shared_options(variant_alias=False)],
-        help="render a composition along NeRF-synthetic cameras or a dataset's test views",
+        help="render a composition along NeRF cameras, a dataset's test views or a path",
         description="Render COMP_DIR (from `comgs compose`) along the cameras of a "
-                    "NeRF-synthetic transforms.json (the scene dataset's frame), or the test "
+                    "NeRF transforms.json (the scene dataset's frame; camera_angle_x or "
+                    "fl_x/fl_y/cx/cy/w/h, top-level or per frame), or the test "
                     "views of a dataset folder or poses_bounds.npy (COLMAP, LLFF, "
-                    "NeRF-synthetic, loaded as step 1 loads it), into "
-                    "COMP_DIR/renders/<variant>/ and, with "
+                    "NeRF-synthetic, loaded as step 1 loads it, each image's intrinsics), "
+                    "or a camera path (--path orbit|spiral|FILE --frames N [--video "
+                    "out.mp4]), into COMP_DIR/renders/<variant>/ and, with "
                     "--gt-dir, score against GT_DIR/<basename>.png into "
                     "COMP_DIR/metrics_<variant>.json (psnr, ssim, frame_seconds, per frame).")
     # the inputs (not settings)
     p.add_argument("comp_dir", metavar="COMP_DIR")
-    p.add_argument("--cameras", required=True, metavar="transforms.json|DATASET",
-                   help="a NeRF-synthetic transforms*.json, or a dataset folder (or its "
-                        "poses_bounds.npy): its test views, every view if it has none")
+    p.add_argument("--cameras", metavar="transforms.json|DATASET",
+                   help="a NeRF transforms*.json, or a dataset folder (or its "
+                        "poses_bounds.npy): its test views, every view if it has none "
+                        "(required without --path; with it, the capture the path is "
+                        "placed by)")
     p.add_argument("--gt-dir", metavar="DIR", help="ground-truth PNGs named like the frames")
     # the Mitsuba variant's old name here, kept for existing scripts
     p.add_argument("--variant-mitsuba", dest="mitsuba_variant", default="auto",
@@ -144,8 +184,12 @@ def _cmd_render_comp(args) -> int:
     if "res" in kw and len(kw["res"]) == 1:          # --res W: a square W×W image
         kw["res"] = kw["res"][0]
     cfg = RenderCompConfig(materials=_materials(args.material), **kw)
+    if args.cameras is None and cfg.path is None:
+        raise ValueError("render-comp: give --cameras (a transforms.json or a dataset "
+                         "folder) or --path orbit|spiral|FILE")
     s = render_comp(args.comp_dir, args.cameras, cfg.variant, args.gt_dir, cfg.materials,
-                    cfg.res, cfg.rays, cfg.seed, progress=not args.quiet)
+                    cfg.res, cfg.rays, cfg.seed, progress=not args.quiet, path=cfg.path,
+                    frames=cfg.frames, video=cfg.video, fps=cfg.fps)
     print(summary_line(s))
     return 0
 

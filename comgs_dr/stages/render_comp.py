@@ -1,5 +1,7 @@
-"""``comgs render-comp``: render a composition folder along NeRF-synthetic cameras, or the
-test views of a captured dataset (COLMAP, LLFF, NeRF-synthetic folder).
+"""``comgs render-comp``: render a composition folder along NeRF cameras, the test views of a
+captured dataset (COLMAP, LLFF, NeRF-synthetic folder), or a camera path around the placed
+objects (``path``: orbit, spiral or a transforms.json; ``data.camera_path``), each camera
+with its own pinhole intrinsics (fx, fy, cx, cy; ``data.comp_folder``).
 
 Variants (the paper's composition table): ``sop`` (shadows from the cached probes),
 ``trace`` (occlusion traced per frame), ``noshadow`` (objects relit, no shadows on the
@@ -11,7 +13,9 @@ kernel compilation; ``first_frame_seconds`` apart) and a per-frame list. Where t
 truth is a composition dataset's (``GT_DIR/../empty/<basename>.exr``, the scene without the
 objects, and ``GT_DIR/../mask/<basename>.png``, their pixels), ``region`` adds what a user
 looks at (``eval.comp_region``): PSNR in the object+shadow region, the shadow's darkness
-against the truth's and the object's mean colour per channel against the truth's.
+against the truth's and the object's mean colour per channel against the truth's. Path
+frames (``renders/<variant>/path_0000.png`` …) have no ground truth: no metrics, and the
+summary says so; ``video`` also writes them as an mp4 (imageio-ffmpeg).
 
 :func:`render_comp` runs the phases in order: check the settings
 (:meth:`RenderCompConfig.validate`), the cameras and their ground truth, load the scene,
@@ -32,7 +36,7 @@ from tqdm.auto import tqdm
 
 from comgs_dr.core import runlog
 from comgs_dr.core.colorspace import srgb_encode
-from comgs_dr.data import comp_folder
+from comgs_dr.data import camera_path, comp_folder
 from comgs_dr.data.images import read_image, write_png8
 from comgs_dr.integrators.comgs_composite import is_file_property
 from comgs_dr.eval import comp_region
@@ -62,12 +66,25 @@ class RenderCompConfig:
     rays: S_r, the integrator's rays per pixel for shading and for shadows (None: its
         default, 256).
     seed: sampler seed of the first frame; frame i renders with seed + i (default 0).
+    path: render a camera path instead of capture views: "orbit" (a circle around the
+        placed objects at the capture cameras' mean distance and elevation), "spiral" (the
+        orbit with its height and distance swinging) or a NeRF transforms.json of cameras
+        (``data.camera_path``); frames ``path_0000`` … with the intrinsics of the first
+        capture camera (or ``res``); no ground truth, no metrics.
+    frames: N, the number of path frames (None: 60 for orbit/spiral, a file's own count).
+    video: also write the frames as this mp4 (H.264 via imageio-ffmpeg); its path goes in
+        the summary.
+    fps: frames per second of the video (default 24).
     """
     variant: str = "sop"
     materials: dict | None = None
     res: int | tuple | None = None
     rays: int | None = None
     seed: int = 0
+    path: str | None = None
+    frames: int | None = None
+    video: str | None = None
+    fps: float = 24.0
 
     def validate(self) -> None:
         """ValueError naming the first setting no render can use."""
@@ -91,6 +108,27 @@ class RenderCompConfig:
         rays = self.rays
         if rays is not None and (isinstance(rays, bool) or int(rays) != rays or rays < 1):
             raise ValueError(f"render-comp: rays must be an integer >= 1, got {rays!r}")
+        n = self.frames
+        if n is not None and (isinstance(n, bool) or not isinstance(n, (int, np.integer))
+                              or not 1 <= n <= camera_path.MAX_FRAMES):
+            raise ValueError(f"render-comp: frames must be an integer in [1, "
+                             f"{camera_path.MAX_FRAMES}], got {n!r}")
+        if n is not None and self.path is None:
+            raise ValueError("render-comp: frames is the length of a camera path: give path "
+                             "(orbit, spiral or a transforms.json) too")
+        if self.path is not None and str(self.path) not in camera_path.SHAPES and \
+                Path(str(self.path)).suffix.lower() != ".json":
+            raise ValueError(f"render-comp: path must be orbit, spiral or a transforms .json "
+                             f"file, got {self.path!r}")
+        if self.path is not None and str(self.path) not in camera_path.SHAPES and \
+                not Path(str(self.path)).is_file():
+            raise FileNotFoundError(f"render-comp: camera path file not found: {self.path}")
+        if self.video is not None and Path(str(self.video)).suffix.lower() != ".mp4":
+            raise ValueError(f"render-comp: video must be an .mp4 file, got {self.video!r}")
+        fps = self.fps
+        if isinstance(fps, bool) or not isinstance(fps, (int, float, np.number)) \
+                or not (np.isfinite(fps) and 0 < fps <= 240):
+            raise ValueError(f"render-comp: fps must be in (0, 240], got {fps!r}")
 
 
 def load_comp_scene(comp_dir, variant: str = "sop", materials: dict | None = None,
@@ -107,18 +145,33 @@ def load_comp_scene(comp_dir, variant: str = "sop", materials: dict | None = Non
     return mi.load_dict(d)
 
 
-def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
+def render_comp(comp_dir, cameras=None, variant: str = "sop", gt_dir=None,
                 materials: dict | None = None, res=None, rays: int | None = None,
-                seed: int = 0, progress: bool = True) -> dict:
-    """Render every camera of ``cameras`` (a NeRF-synthetic ``transforms*.json``, or a dataset
-    folder / ``poses_bounds.npy``: its test views, ``comp_folder.camera_source``); returns
-    the metrics dict (written to ``metrics_<variant>.json`` when ``gt_dir`` is given).
-    ``variant``, ``materials``, ``res``, ``rays``, ``seed``: see :class:`RenderCompConfig`."""
-    RenderCompConfig(variant, materials, res, rays, seed).validate()
+                seed: int = 0, progress: bool = True, path=None, frames: int | None = None,
+                video=None, fps: float = 24.0) -> dict:
+    """Render every camera of ``cameras`` (a NeRF ``transforms*.json``, or a dataset
+    folder / ``poses_bounds.npy``: its test views, ``comp_folder.camera_source``), or with
+    ``path`` the frames of a camera path placed by those cameras (None: the scene run's
+    dataset, as step 1 loads it); returns the metrics dict (written to
+    ``metrics_<variant>.json`` when ``gt_dir`` is given). ``variant``, ``materials``,
+    ``res``, ``rays``, ``seed``, ``path``, ``frames``, ``video``, ``fps``: see
+    :class:`RenderCompConfig`."""
+    RenderCompConfig(variant, materials, res, rays, seed, path, frames, video, fps).validate()
     comp_dir = Path(comp_dir)
     manifest = comp_folder.read_manifest(comp_dir)
-    cams = comp_folder.camera_source(cameras, manifest.get("world_from_source"), res)
+    if path is None:
+        if cameras is None:
+            raise ValueError("render-comp: give cameras (a transforms.json or a dataset "
+                             "folder) or a camera path")
+        cams = comp_folder.camera_source(cameras, manifest.get("world_from_source"), res)
+    else:
+        if gt_dir is not None:
+            raise ValueError("render-comp: path frames have no ground truth: leave gt_dir "
+                             "out with path")
+        cams = _path_cameras(comp_dir, manifest, cameras, path, frames, res)
     gts = _ground_truth(gt_dir, cams, res) if gt_dir is not None else {}
+    if gts:
+        cams = [comp_folder.sized(c, *gts[c["name"]].shape[1::-1]) for c in cams]
     _check_frame_sizes(cams)
     regions = _region_truth(gt_dir, cams) if gt_dir is not None else {}
     extra = {"rays": int(rays), "shadow_rays": int(rays)} if rays else {}
@@ -126,9 +179,55 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
     scene = load_comp_scene(comp_dir, variant, materials,
                             [comp_folder.sensor_dict(cams[0], clip=clip)], **extra)
     out_dir = _render_folder(comp_dir, variant, cams, gt_dir)
-    frames = _render_frames(scene, cams, comp_dir, out_dir, variant, gts, regions, seed,
-                            progress)
-    return _summarise(frames, cams, comp_dir, cameras, variant, out_dir, gts, regions)
+    recs = _render_frames(scene, cams, comp_dir, out_dir, variant, gts, regions, seed,
+                          progress, clip)
+    summary = _summarise(recs, cams, comp_dir, cameras, variant, out_dir, gts, regions)
+    if path is not None:
+        summary["path"] = str(path)
+        summary["metrics"] = "skipped: path frames have no ground truth"
+    if video is not None:
+        summary["video"] = str(write_video(video, [out_dir / f"{c['name']}.png" for c in cams],
+                                           fps))
+        summary["video_bytes"] = Path(video).stat().st_size
+    return summary
+
+
+def _path_cameras(comp_dir: Path, manifest: dict, cameras, path, frames, res) -> list[dict]:
+    """The frames of a camera path (``data.camera_path``), placed by the capture cameras:
+    ``cameras`` when given, else the scene run's dataset views (test, else train)."""
+    wfs = manifest.get("world_from_source")
+    if cameras is not None:
+        capture = comp_folder.camera_source(cameras, wfs, None)
+    else:
+        from comgs_dr.train.run import load_run_dataset, read_run_info
+        run = manifest["scene"].get("run")
+        if not run:
+            raise ValueError(f"{comp_dir / comp_folder.MANIFEST}: no scene run recorded: give "
+                             f"cameras to place the path by")
+        data = load_run_dataset(Path(run), read_run_info(Path(run)), pixels=False)
+        capture = [comp_folder.camera(v.name, v.camera.to_world, v.camera.width,
+                                      v.camera.height, v.camera.fx, v.camera.fx, v.camera.cx,
+                                      v.camera.cy) for v in (data.test or data.train)]
+    return camera_path.path_cameras(path, frames, capture, camera_path.objects_centre(manifest),
+                                    res, wfs)
+
+
+def write_video(video, pngs: list, fps: float = 24.0) -> Path:
+    """``video`` (mp4, H.264 yuv420p, via imageio-ffmpeg) of the PNG frames ``pngs``; an
+    odd width or height is padded by one edge pixel (yuv420p needs even sizes)."""
+    import imageio.v2 as imageio
+    out = Path(video)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with imageio.get_writer(str(out), fps=float(fps), codec="libx264", quality=8,
+                            macro_block_size=1, pixelformat="yuv420p",
+                            ffmpeg_log_level="error") as w:
+        for p in pngs:
+            img = np.asarray(read_image(p))[..., :3]
+            img = (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+            h, wd = img.shape[:2]
+            img = np.pad(img, ((0, h % 2), (0, wd % 2), (0, 0)), mode="edge")
+            w.append_data(img)
+    return out
 
 
 # ---------------------------------------------------------------------------------------
@@ -136,7 +235,7 @@ def render_comp(comp_dir, cameras, variant: str = "sop", gt_dir=None,
 
 def _ground_truth(gt_dir, cams: list, res) -> dict:
     """{frame: ground truth [H, W, 3]} of every camera; without ``res`` each camera takes
-    its ground truth's size, with it the sizes must agree."""
+    its ground truth's size (``render_comp`` resizes them), with it the sizes must agree."""
     missing = [c["name"] for c in cams if not (Path(gt_dir) / f"{c['name']}.png").is_file()]
     if missing:
         raise FileNotFoundError(f"render-comp: no ground truth for {len(missing)} of "
@@ -145,9 +244,7 @@ def _ground_truth(gt_dir, cams: list, res) -> dict:
     for c in cams:
         gts[c["name"]] = read_image(Path(gt_dir) / f"{c['name']}.png")[..., :3]
         gh, gw = gts[c["name"]].shape[:2]
-        if res is None:
-            c["height"], c["width"] = gh, gw
-        elif (c["width"], c["height"]) != (gw, gh):
+        if res is not None and (c["width"], c["height"]) != (gw, gh):
             raise ValueError(f"render-comp: res {c['width']}×{c['height']} is not the ground "
                              f"truth's size ({c['name']}.png is {gw}×{gh}): leave res out to "
                              f"render at the ground truth's size")
@@ -199,11 +296,14 @@ def _render_folder(comp_dir: Path, variant: str, cams: list, gt_dir) -> Path:
 
 
 def _render_frames(scene, cams: list, comp_dir: Path, out_dir: Path, variant: str, gts: dict,
-                   regions: dict, seed: int, progress: bool) -> list[dict]:
-    """Render every camera (frame i with ``seed + i``) into ``out_dir``; per frame a record
-    (name, seconds, scores), each also appended to ``render_<variant>.metrics.jsonl``."""
+                   regions: dict, seed: int, progress: bool, clip: dict | None = None
+                   ) -> list[dict]:
+    """Render every camera (frame i with ``seed + i``, its own pose and intrinsics) into
+    ``out_dir``; per frame a record (name, seconds, scores), each also appended to
+    ``render_<variant>.metrics.jsonl``."""
     sensor = scene.sensors()[0]
     params = mi.traverse(sensor)
+    perspective = sensor.class_name() == "PerspectiveCamera"
     frames = []
     size = (cams[0]["width"], cams[0]["height"])
     stage, jsonl = f"render-comp {variant}", f"render_{variant}.{runlog.LOG_NAME}"
@@ -213,15 +313,28 @@ def _render_frames(scene, cams: list, comp_dir: Path, out_dir: Path, variant: st
         if (c["width"], c["height"]) != size:
             raise ValueError(f"render-comp: frame {c['name']} is {c['width']}×{c['height']}, "
                              f"the first frame {size[0]}×{size[1]}: one size per camera file")
-        params["to_world"] = mi.ScalarTransform4f(np.asarray(c["to_world"]).tolist())
-        params.update()
-        rec = _render_frame(scene, sensor, c["name"], seed + i, out_dir, gts, regions)
+        rec = _render_frame(scene, _frame_sensor(sensor, params, perspective, c, clip),
+                            c["name"], seed + i, out_dir, gts, regions)
         frames.append(rec)
         runlog.append(comp_dir, runlog.record(stage, sum(f["seconds"] for f in frames),
                                               frame=i, **{k: v for k, v in rec.items()
                                                           if k in ("psnr", "ssim", "psnr_region")}),
                       name=jsonl)
     return frames
+
+
+def _frame_sensor(sensor, params, perspective: bool, cam: dict, clip: dict | None):
+    """The scene's sensor moved to ``cam`` (pose, field of view, principal point), or, for
+    a camera with fx ≠ fy, a ``comgs_pinhole`` sensor of its own."""
+    d = comp_folder.sensor_dict(cam, clip=clip)
+    if not perspective or d["type"] != "perspective":
+        return mi.load_dict(d)
+    params["to_world"] = d["to_world"]
+    params["x_fov"] = d["fov"]
+    params["principal_point_offset_x"] = d["principal_point_offset_x"]
+    params["principal_point_offset_y"] = d["principal_point_offset_y"]
+    params.update()
+    return sensor
 
 
 def _render_frame(scene, sensor, name: str, seed: int, out_dir: Path, gts: dict,
@@ -254,7 +367,8 @@ def _summarise(frames: list, cams: list, comp_dir: Path, cameras, variant: str, 
     """The metrics dict of :func:`render_comp`; with ground truth also written to
     ``metrics_<variant>.json``."""
     times = [f["seconds"] for f in frames]
-    summary = {"variant": variant, "cameras": str(cameras), "frames": len(frames),
+    summary = {"variant": variant, "cameras": None if cameras is None else str(cameras),
+               "frames": len(frames),
                "resolution": [cams[0]["width"], cams[0]["height"]],
                "frame_seconds": float(np.median(times[1:] if len(times) > 1 else times)),
                "first_frame_seconds": times[0], "renders": str(out_dir), "per_frame": frames}
@@ -276,4 +390,8 @@ def summary_line(summary: dict) -> str:
                                                   f"(median)" if s["frames"] > 1 else ""))
     if "psnr" in s:
         line += f", PSNR {s['psnr']:.2f} dB, SSIM {s['ssim']:.4f}"
-    return line + f"; renders in {s['renders']}"
+    if "path" in s:
+        line += f", camera path {s['path']} (no ground truth: no metrics)"
+    line += f"; renders in {s['renders']}"
+    return line + (f"; video {s['video']} ({s['video_bytes'] / 1024:.0f} KiB)"
+                   if "video" in s else "")
