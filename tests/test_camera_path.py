@@ -216,3 +216,27 @@ def test_render_comp_summary_and_anisotropic_file_path(tiny_comp):
     from PIL import Image
     img = np.asarray(Image.open(comp / "renders" / "noshadow" / "path_0002.png"))
     assert img.shape == (12, 16, 3) and img.std() > 0
+
+
+def test_per_frame_intrinsics_in_a_sequence_render_as_alone(tiny_comp):
+    """Square-pixel frames with their own focal length and principal point move the one
+    perspective sensor (pose, fov, principal point): a frame rendered after others is the
+    frame rendered alone."""
+    from PIL import Image
+
+    from comgs_dr.stages.render_comp import render_comp
+    comp = tiny_comp / "comp"
+    frames = [{"file_path": f"./p/{i}", "fl_x": 12.0 + 2 * i, "fl_y": 12.0 + 2 * i,
+               "cx": 6.0 + 2 * i, "cy": 7.0 - i, "transform_matrix":
+               (cp.look_at([2.5 * np.cos(i), 2.5 * np.sin(i), 1.5], [0.2, 0, 0.3])
+                @ np.linalg.inv(MITSUBA_FROM_OPENGL)).tolist()} for i in range(3)]
+    for name, fr in (("all.json", frames), ("last.json", frames[2:])):
+        (tiny_comp / name).write_text(json.dumps({"w": 16, "h": 12, "frames": fr}))
+    render_comp(comp, None, "noshadow", rays=4, progress=False, path=tiny_comp / "all.json",
+                seed=0)
+    seq = np.asarray(Image.open(comp / "renders" / "noshadow" / "path_0002.png"))
+    render_comp(comp, None, "noshadow", rays=4, progress=False, path=tiny_comp / "last.json",
+                seed=2)
+    alone = np.asarray(Image.open(comp / "renders" / "noshadow" / "path_0000.png"))
+    assert seq.std() > 0
+    np.testing.assert_array_equal(seq, alone)

@@ -201,3 +201,24 @@ def test_dataset_cameras_keep_principal_point(tmp_path):
     assert np.allclose([b["fx"], b["cx"], b["cy"]], [70.0, 32.0, 24.0])
     s = mi.load_dict(comp_folder.sensor_dict(a))
     assert np.allclose(sensor_intrinsics(s), (50.0, 50.0, 20.0, 30.0), atol=1e-3)
+
+
+@pytest.mark.parametrize("intr", INTRINSICS[:2])
+def test_step1_camera_and_rasteriser_follow_k(intr):
+    """Step 1's own camera (``data.types.Camera``: what ``compose`` and ``render`` use):
+    its sensor's rays, its ``project`` and the surfel rasteriser's fitted projection
+    (``surfels.raster.pinhole_view``) all follow K [R|t] with the principal point off the
+    centre (its pixels are square: the loaders keep fx when fx, fy differ by <= 1 %)."""
+    from comgs_dr.data.types import Camera
+    from comgs_dr.surfels.raster import pinhole_view
+    to_world = _look([3.0, -4.0, 2.5], [0.2, 0.1, 0.3])
+    cam = Camera.from_intrinsics(to_world, W, H, *intr)
+    pts = _points(to_world)
+    uv, _ = _reference(to_world, _K(*intr), pts)
+    mine, _ = cam.project(pts)
+    assert np.abs(mine - uv).max() < 1e-4          # its pose re-orthonormalised
+    s = mi.load_dict(cam.sensor_dict())
+    assert np.allclose(sensor_intrinsics(s), intr, atol=1e-3)
+    A = pinhole_view(s).A                   # Mitsuba camera plane (+X left, +Y up) → pixels
+    fx, fy, cx, cy = intr
+    assert np.allclose(A, [[-fx, 0, cx], [0, -fy, cy]], atol=2e-3)
