@@ -216,12 +216,10 @@ def register_pinhole() -> None:
         def sample_ray_differential(self, time, sample1, sample2, sample3, active=True):
             crop = mi.ScalarVector2f(self.film().crop_size())
             ray = mi.RayDifferential3f(self._ray(time, self._local(sample2)))
-            tw = self.world_transform()
             rx = self._ray(time, self._local(mi.Vector2f(sample2) + mi.Vector2f(1.0 / crop.x, 0)))
             ry = self._ray(time, self._local(mi.Vector2f(sample2) + mi.Vector2f(0, 1.0 / crop.y)))
             ray.o_x, ray.o_y, ray.d_x, ray.d_y = rx.o, ry.o, rx.d, ry.d
             ray.has_differentials = True
-            del tw
             return ray, mi.Spectrum(1.0)
 
         def to_string(self):

@@ -197,9 +197,8 @@ def sized(cam: dict, width: int, height: int) -> dict:
         fx, cx, cy = cam["fx"] * sx, cam["cx"] * sx, cam["cy"] * sy
         fy = cam["fy"] * (sy if abs(sx - sy) <= 0.01 * max(sx, sy) else sx)
     _check_intrinsics(cam.get("where", f"camera {cam['name']}"), fx, fy, cx, cy, w)
-    rest = {k: v for k, v in cam.items() if k not in ("intrinsic_keys",)}
-    return camera(cam["name"], cam["to_world"], w, h, fx, fy, cx, cy,
-                  **{k: v for k, v in rest.items() if k not in _CAMERA_KEYS})
+    extra = {k: v for k, v in cam.items() if k not in _CAMERA_KEYS + ("intrinsic_keys",)}
+    return camera(cam["name"], cam["to_world"], w, h, fx, fy, cx, cy, **extra)
 
 
 _CAMERA_KEYS = ("name", "to_world", "width", "height", "fx", "fy", "cx", "cy", "fov_x_deg")
