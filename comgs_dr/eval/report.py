@@ -234,6 +234,11 @@ def _summaries(run_dir: Path) -> str:
         e = json.loads(p.read_text())
         s += [f"<h2>Edit stage ({html.escape(p.parent.relative_to(run_dir).as_posix() or '.')})</h2>",
               _table(["part", "seconds"], [[k, v] for k, v in e.get("timings", {}).items()])]
+        if e.get("exposure"):          # data.exposure: the object -> scene gain of each object
+            s += [_table(["object", "exposure gain (R, G, B)", "EV", "method", "assumed"],
+                         [[n, ", ".join(f"{v:.3f}" for v in x.get("gain", [])),
+                           x.get("exposure_ev"), x.get("method"), x.get("assumed")]
+                          for n, x in e["exposure"].items()])]
     for p in sorted(run_dir.rglob("*.json")):
         if p.name.endswith(".json") and p.with_name(p.stem + "_preview.png").is_file():
             e = json.loads(p.read_text())

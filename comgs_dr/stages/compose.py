@@ -17,7 +17,11 @@ Inputs: a step-1 scene run, one step-2 object run per object, placements
   depend on (files, placements, settings): moving or replacing one object re-traces only
   the pairs it is part of;
 * ``composition.json`` (manifest, see ``data.comp_folder``), ``composition.xml``,
-  ``edit.json`` (timings of lighting, probe placement and occlusion tracing; pair counts).
+  ``edit.json`` (timings of lighting, probe placement and occlusion tracing; pair counts);
+  both record each object's exposure gain (``data.exposure``: the gain, how it was found,
+  what was assumed);
+* ``objects/<name>.ply`` — the object's surfels with its albedo × its exposure gain, where
+  that gain is not 1 (the manifest then names this file).
 
 :func:`compose` runs the phases in order: check the inputs, load and place the objects,
 light them (:func:`_lighting`), place the probes (:func:`_place_probes`), trace the
@@ -39,12 +43,13 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from comgs_dr.data import comp_folder
+from comgs_dr.data import exposure as xp
 from comgs_dr.surfels.params import object_bounds
 from comgs_dr.lighting import envmap as em
 from comgs_dr.sops import occlusion as occ
 from comgs_dr.sops.placement import PlacementConfig, fuse_depth, render_geometry
 from comgs_dr.sops.probes import ProbeSet
-from comgs_dr.surfels.io import load_ply
+from comgs_dr.surfels.io import load_ply, save_ply
 from comgs_dr.surfels.shape import SurfelShapeBase
 from comgs_dr.surfels.transform import transform_surfels
 from comgs_dr.core import runlog
@@ -143,19 +148,24 @@ class _Cache:
 
 
 def compose(scene_run, objects: dict, placement, out, env=None, estimator=None,
-            cfg: ComposeConfig = ComposeConfig(), progress: bool = True) -> dict:
+            cfg: ComposeConfig = ComposeConfig(), progress: bool = True,
+            exposure=None) -> dict:
     """Build (or update) a composition folder; returns the ``edit.json`` summary.
 
     ``objects``: {name: step-2 run folder}; ``placement``: a ``transform.json`` path or
     {name: Similarity}; ``env``: one map for all objects (equirect Z-up or octahedral
     EXR) — or ``estimator``: callable(world position [3], object name) -> equirect
     radiance [H, W, 3] (the name lets it keep its own record of each estimate).
+    ``exposure``: the object → scene gain on each object's albedo (``data.exposure``): an
+    ``ExposureGain`` for every object, {name: ExposureGain}, ``"grey-world"`` (each from
+    its own albedo) or None (gain 1, assumed, and said so in composition.json).
     A folder this call created is removed again when it fails before writing a file.
     """
     out = Path(out)
     created = not out.exists()
     try:
-        return _compose(scene_run, objects, placement, out, env, estimator, cfg, progress)
+        return _compose(scene_run, objects, placement, out, env, estimator, cfg, progress,
+                        exposure)
     except BaseException:
         if created and out.is_dir():
             _remove_empty_folders(out)
@@ -177,7 +187,8 @@ def _remove_empty_folders(out: Path) -> None:
 MIN_RELATIVE_SIZE = 1e-4    # a placed object smaller than this × the scene: a wrong scale
 
 
-def _compose(scene_run, objects, placement, out: Path, env, estimator, cfg, progress) -> dict:
+def _compose(scene_run, objects, placement, out: Path, env, estimator, cfg, progress,
+             exposure=None) -> dict:
     t_all = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     timings = {}
@@ -199,10 +210,12 @@ def _compose(scene_run, objects, placement, out: Path, env, estimator, cfg, prog
 
     t = time.perf_counter()                  # what the renderer reads
     shadow = _write_probes(out, world.names, regions, own, textures, cfg.shadow.res)
-    _write_manifest(out, world, objects, light["source"], cfg)
+    gains = _apply_exposure(out, world, exposure)
+    _write_manifest(out, world, objects, light["source"], cfg, gains)
     timings["write"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     summary = _summary(timings, shadow, regions, own, cache, culled, cfg)
+    summary["exposure"] = {n: g for n, (g, _) in gains.items()}
     atomic_write_text(out / "edit.json", json.dumps(runlog.json_safe(summary), indent=1,
                                                      allow_nan=False))
     runlog.rewrite(out, runlog.part_records("compose", timings, shadow_probes=shadow.count))
@@ -461,10 +474,44 @@ def _write_probes(out: Path, names: list, regions: dict, own: dict, textures: di
     return shadow
 
 
+def _apply_exposure(out: Path, world: _World, exposure) -> dict:
+    """{name: (the exposure record, the PLY the renderer reads)}: each object's gain
+    (``compose``'s ``exposure``) and, where it is not 1, ``objects/<name>.ply`` with the
+    albedo × gain (clipped to 1; the share of clipped albedo values recorded)."""
+    gains = {}
+    for n in world.names:
+        src = world.inputs.files[n]["ply"]
+        g = (exposure.get(n) if isinstance(exposure, dict) else exposure) or xp.ExposureGain()
+        if not (isinstance(g, xp.ExposureGain) or g == "grey-world"):
+            raise ValueError(f"compose: exposure must be an ExposureGain, a dict of them, "
+                             f"'grey-world' or None, got {g!r}")
+        params = meta = None
+        if g == "grey-world" or not g.is_identity:
+            params, meta = load_ply(str(src), return_meta=True)
+        if g == "grey-world":
+            d = params.to_numpy()
+            g = xp.gain_from_grey_world(d["albedo"], 1.0 / (1.0 + np.exp(-d["opacity_logit"])))
+        record, ply = g.to_json(), src
+        if not g.is_identity:
+            d = params.to_numpy()
+            a = d["albedo"].astype(np.float64) * np.asarray(g.gain)
+            record["albedo_clipped"] = round(float((a > 1).mean()), 6)
+            d["albedo"] = np.clip(a, 0.0, 1.0).astype(np.float32)
+            ply = out / "objects" / f"{n}.ply"
+            ply.parent.mkdir(parents=True, exist_ok=True)
+            save_ply(type(params).from_numpy(**d), str(ply), color_space=meta.color_space)
+            record["ply"] = f"objects/{n}.ply"
+            if record["albedo_clipped"] > 0.01:
+                log.warning("compose: %s: %.1f%% of the albedo values × the exposure gain "
+                            "exceed 1 and are clipped", n, 100 * record["albedo_clipped"])
+        gains[n] = (record, ply)
+    return gains
+
+
 def _write_manifest(out: Path, world: _World, objects: dict, lighting: dict,
-                    cfg: ComposeConfig) -> None:
+                    cfg: ComposeConfig, gains: dict) -> None:
     """``composition.json`` (``data.comp_folder``) and ``composition.xml``."""
-    scene_run, scene_ply, files = world.inputs.scene_run, world.inputs.scene_ply, world.inputs.files
+    scene_run, scene_ply = world.inputs.scene_run, world.inputs.scene_ply
     manifest = {
         "version": comp_folder.FORMAT_VERSION,
         "scene": {"run": str(scene_run.resolve()), "ply": str(scene_ply.resolve()),
@@ -472,10 +519,12 @@ def _write_manifest(out: Path, world: _World, objects: dict, lighting: dict,
                   **({"sky": str((scene_run / "background.exr").resolve())}
                      if (scene_run / "background.exr").is_file() else {})},
         "world_from_source": world.W.tolist(),
-        "objects": {n: {"run": str(Path(objects[n]).resolve()), "ply": str(files[n]["ply"].resolve()),
+        "objects": {n: {"run": str(Path(objects[n]).resolve()),
+                        "ply": str(Path(gains[n][1]).resolve()),
                         "placement": world.sims[n].matrix.tolist(), "envmap": f"env/{n}.exr",
                         "probes": f"probes/{n}.npz",
-                        "bounds": [world.bounds[n][0].tolist(), world.bounds[n][1].tolist()]}
+                        "bounds": [world.bounds[n][0].tolist(), world.bounds[n][1].tolist()],
+                        "exposure": gains[n][0]}
                     for n in objects},
         "shadow_probes": "shadow_probes.npz", "lighting": lighting,
         "config": asdict(cfg)}
