@@ -187,7 +187,7 @@ def test_read_cameras_bad_intrinsics(tmp_path, bad, match):
 
 
 def test_dataset_cameras_keep_principal_point(tmp_path):
-    """A NeRF-synthetic folder with per-frame cx/cy: dataset_cameras keeps them."""
+    """A NeRF-synthetic folder with per-frame cx/cy and fl_y: dataset_cameras keeps them."""
     from PIL import Image
     m = _look([3.0, 0.0, 1.0])
     (tmp_path / "test").mkdir()
@@ -198,7 +198,8 @@ def test_dataset_cameras_keep_principal_point(tmp_path):
         _transforms(tmp_path / f"transforms_{split}.json", fr, fl_x=50.0, w=W, h=H)
     a, b = comp_folder.dataset_cameras(tmp_path)
     assert np.allclose([a["fx"], a["fy"], a["cx"], a["cy"]], [50.0, 50.0, 20.0, 30.0])
-    assert np.allclose([b["fx"], b["cx"], b["cy"]], [70.0, 32.0, 24.0])
+    assert np.allclose([b["fx"], b["fy"], b["cx"], b["cy"]], [70.0, 70.2, 32.0, 24.0])
+    assert comp_folder.sensor_dict(b)["type"] == "comgs_pinhole"
     s = mi.load_dict(comp_folder.sensor_dict(a))
     assert np.allclose(sensor_intrinsics(s), (50.0, 50.0, 20.0, 30.0), atol=1e-3)
 

@@ -269,9 +269,8 @@ def dataset_cameras(path, res=None, world_from_source=None) -> list[dict]:
     loads them, so they are already in the reconstruction's frame (no
     ``world_from_source``), with each image's own intrinsics: focal length and principal
     point (COLMAP's cx, cy; a NeRF frame's; LLFF's centre), at the image's size (``res``:
-    int or (w, h), rescaled as :func:`sized` does). Step 1's cameras have square pixels
-    (its loaders accept fx, fy within 1 % and keep fx), so these do too; a transforms file
-    (:func:`read_cameras`) keeps fy.
+    int or (w, h), rescaled as :func:`sized` does), fy as calibrated (step 1's loaders
+    accept fx, fy within 1 % of each other and step 1 renders with fx; these keep both).
     ``world_from_source`` (the composition's): ValueError when the dataset's differs, i.e.
     the folder is not the one the scene was reconstructed from. Frame names are the views'
     file names without extension (as :func:`read_cameras` names a transforms file's frames),
@@ -290,7 +289,8 @@ def dataset_cameras(path, res=None, world_from_source=None) -> list[dict]:
     out = []
     for v in views:
         c = v.camera
-        cam = camera(str(v.name), c.to_world, c.width, c.height, c.fx, c.fx, c.cx, c.cy)
+        fy = c.fx * float(getattr(c, "fy_over_fx", 1.0))         # as calibrated
+        cam = camera(str(v.name), c.to_world, c.width, c.height, c.fx, fy, c.cx, c.cy)
         out.append(sized(cam, *res_wh) if res_wh else cam)
     from comgs_dr.data.images import IMAGE_EXTENSIONS
     strip = lambda n: str(Path(n).with_suffix("")) \

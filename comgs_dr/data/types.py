@@ -63,6 +63,7 @@ class Camera:
     fov_x_deg: float                      # horizontal field of view
     principal_point_offset_x: float = 0.0  # units of the image width
     principal_point_offset_y: float = 0.0  # units of the image height
+    fy_over_fx: float = 1.0   # as calibrated (step 1 renders fx = fy; render-comp uses fy)
 
     def __post_init__(self):
         self.to_world = np.asarray(self.to_world, dtype=np.float64).reshape(4, 4)
@@ -92,7 +93,7 @@ class Camera:
         if not 0.0 < fov < 180.0:    # fx vanishing (e.g. 1e-300) next to the width
             raise DatasetError(f"{where}: focal length fx={fx:.4g} px gives a {fov:.6g}° field "
                                f"of view for a {width} px wide image (expected (0, 180))")
-        return cls(to_world, width, height, fov, 0.5 - cx / width, 0.5 - cy / height)
+        return cls(to_world, width, height, fov, 0.5 - cx / width, 0.5 - cy / height, fy / fx)
 
     # ------------------------------------------------------------------ intrinsics
     @property

@@ -205,9 +205,9 @@ def _path_cameras(comp_dir: Path, manifest: dict, cameras, path, frames, res) ->
             raise ValueError(f"{comp_dir / comp_folder.MANIFEST}: no scene run recorded: give "
                              f"cameras to place the path by")
         data = load_run_dataset(Path(run), read_run_info(Path(run)), pixels=False)
-        capture = [comp_folder.camera(v.name, v.camera.to_world, v.camera.width,
-                                      v.camera.height, v.camera.fx, v.camera.fx, v.camera.cx,
-                                      v.camera.cy) for v in (data.test or data.train)]
+        capture = [comp_folder.camera(v.name, c.to_world, c.width, c.height, c.fx,
+                                      c.fx * c.fy_over_fx, c.cx, c.cy)
+                   for v in (data.test or data.train) for c in (v.camera,)]
     return camera_path.path_cameras(path, frames, capture, camera_path.objects_centre(manifest),
                                     res, wfs)
 
