@@ -75,6 +75,14 @@ def _transforms(path, n, **top):
     return path
 
 
+def test_frames_of_different_sizes_refused_before_rendering(tmp_path):
+    from comgs_dr.stages.render_comp import _check_frame_sizes
+    cams = [comp_folder.camera("a", np.eye(4), 8, 8, 8, 8, 4, 4),
+            comp_folder.camera("b", np.eye(4), 16, 8, 8, 8, 4, 4)]
+    with pytest.raises(ValueError, match="frame b is 16×8, the first frame 8×8: one size"):
+        _check_frame_sizes(cams)
+
+
 def test_path_file(tmp_path):
     p = _transforms(tmp_path / "p.json", 3, fl_x=30.0, fl_y=25.0, cx=15.0, cy=11.0, w=32, h=24)
     cams = cp.path_cameras(p, None, _capture())
@@ -196,6 +204,9 @@ def test_render_comp_orbit_end_to_end(tiny_comp):
     assert len(frames) == 4 and frames[0].shape[:2] == (16, 18)     # padded to even sizes
     assert r.get_meta_data()["fps"] == pytest.approx(8.0)
     assert not (comp / "metrics_sop.json").exists()
+    s = json.loads((comp / "path_sop.json").read_text())
+    assert s["video"] == str(video) and s["video_bytes"] == video.stat().st_size
+    assert s["path"] == "orbit" and s["frames"] == 4 and s["resolution"] == [17, 15]
 
 
 def test_render_comp_summary_and_anisotropic_file_path(tiny_comp):
@@ -213,6 +224,7 @@ def test_render_comp_summary_and_anisotropic_file_path(tiny_comp):
     assert s["frames"] == 3 and s["resolution"] == [16, 12] and s["cameras"] is None
     assert s["metrics"] == "skipped: path frames have no ground truth" and "psnr" not in s
     assert "no ground truth: no metrics" in summary_line(s)
+    assert json.loads((comp / "path_noshadow.json").read_text())["frames"] == 3
     from PIL import Image
     img = np.asarray(Image.open(comp / "renders" / "noshadow" / "path_0002.png"))
     assert img.shape == (12, 16, 3) and img.std() > 0

@@ -15,7 +15,8 @@ objects, and ``GT_DIR/../mask/<basename>.png``, their pixels), ``region`` adds w
 looks at (``eval.comp_region``): PSNR in the object+shadow region, the shadow's darkness
 against the truth's and the object's mean colour per channel against the truth's. Path
 frames (``renders/<variant>/path_0000.png`` …) have no ground truth: no metrics, and the
-summary says so; ``video`` also writes them as an mp4 (imageio-ffmpeg).
+summary (also written to ``COMP_DIR/path_<variant>.json``) says so; ``video`` also writes
+them as an mp4 (imageio-ffmpeg).
 
 :func:`render_comp` runs the phases in order: check the settings
 (:meth:`RenderCompConfig.validate`), the cameras and their ground truth, load the scene,
@@ -189,6 +190,9 @@ def render_comp(comp_dir, cameras=None, variant: str = "sop", gt_dir=None,
         summary["video"] = str(write_video(video, [out_dir / f"{c['name']}.png" for c in cams],
                                            fps))
         summary["video_bytes"] = Path(video).stat().st_size
+    if path is not None:                     # no metrics file: the run's summary instead
+        atomic_write_text(comp_dir / f"path_{variant}.json",
+                          json.dumps(runlog.json_safe(summary), indent=1, allow_nan=False))
     return summary
 
 
@@ -252,7 +256,15 @@ def _ground_truth(gt_dir, cams: list, res) -> dict:
 
 
 def _check_frame_sizes(cams: list) -> None:
-    """ValueError for a frame beyond the (MAX_SIDE/2)² pixels of the hit buffer."""
+    """ValueError, before any frame renders, for frames of different sizes (a camera file
+    with per-frame w/h: give res) or one beyond the (MAX_SIDE/2)² pixels of the hit
+    buffer."""
+    first = (cams[0]["width"], cams[0]["height"])
+    other = next((c for c in cams if (c["width"], c["height"]) != first), None)
+    if other is not None and None not in first:
+        raise ValueError(f"render-comp: frame {other['name']} is {other['width']}×"
+                         f"{other['height']}, the first frame {first[0]}×{first[1]}: one size "
+                         f"per run (give res to render every camera at one size)")
     for c in cams:
         if c["width"] is not None and c["width"] * c["height"] > MAX_SIDE * MAX_SIDE // 4:
             raise ValueError(f"render-comp: frame {c['name']} is {c['width']}×{c['height']} px, "
