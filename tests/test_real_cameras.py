@@ -223,3 +223,43 @@ def test_step1_camera_and_rasteriser_follow_k(intr):
     A = pinhole_view(s).A                   # Mitsuba camera plane (+X left, +Y up) → pixels
     fx, fy, cx, cy = intr
     assert np.allclose(A, [[-fx, 0, cx], [0, -fy, cy]], atol=2e-3)
+
+
+def _check_rays_follow(cam):
+    """The camera dict's sensor rays reproject to their pixels under its own K [R|t]."""
+    K = _K(cam["fx"], cam["fy"], cam["cx"], cam["cy"])
+    w, h = cam["width"], cam["height"]
+    g = np.stack(np.meshgrid(np.linspace(0.5, w - 0.5, 5), np.linspace(0.5, h - 0.5, 4)),
+                 -1).reshape(-1, 2)
+    s = mi.load_dict(comp_folder.sensor_dict(cam))
+    ray, _ = s.sample_ray(0.0, 0.0, mi.Point2f(g[:, 0] / w, g[:, 1] / h), mi.Point2f(0.5))
+    o = np.array(ray.o, np.float64).reshape(3, -1).T
+    d = np.array(ray.d, np.float64).reshape(3, -1).T
+    back, _ = _reference(cam["to_world"], K, o + 3.0 * d)
+    assert np.abs(back - g).max() < 1e-3
+
+
+def test_colmap_and_llff_folders_keep_their_intrinsics(tmp_path):
+    """COLMAP PINHOLE fx 22.0, fy 22.1, cx 11.4, cy 7.9 (26×18) and LLFF (focal 44 for
+    52×36, files 26×18): dataset_cameras keeps each, and the sensors follow them."""
+    from test_recon_data import make_colmap, ring_cameras, write_llff
+    rng = np.random.default_rng(0)
+    make_colmap(tmp_path / "colmap", rng)
+    cams = comp_folder.dataset_cameras(tmp_path / "colmap")
+    assert [c["name"] for c in cams] == ["img_00", "img_08"]
+    for c in cams:
+        assert np.allclose([c["fx"], c["fy"], c["cx"], c["cy"], c["width"], c["height"]],
+                           [22.0, 22.1, 11.4, 7.9, 26, 18])
+        assert comp_folder.sensor_dict(c)["type"] == "comgs_pinhole"
+        _check_rays_follow(c)
+    half = comp_folder.dataset_cameras(tmp_path / "colmap", res=(13, 9))[0]
+    assert np.allclose([half["fx"], half["fy"], half["cx"], half["cy"]],
+                       [11.0, 11.05, 5.7, 3.95])
+    (tmp_path / "llff").mkdir()
+    write_llff(tmp_path / "llff", ring_cameras(9, up=(0, -1, 0), height=0.5), 52, 36, 44.0,
+               rng, folder="images_2")
+    for c in comp_folder.dataset_cameras(tmp_path / "llff"):
+        assert np.allclose([c["fx"], c["fy"], c["cx"], c["cy"], c["width"], c["height"]],
+                           [22.0, 22.0, 13.0, 9.0, 26, 18])
+        assert comp_folder.sensor_dict(c)["type"] == "perspective"
+        _check_rays_follow(c)
