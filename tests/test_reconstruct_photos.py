@@ -76,6 +76,21 @@ def test_a_complete_output_is_reused_and_a_changed_one_is_not(first_run, photos_
         os.utime(p, ns=(st.st_atime_ns, st.st_mtime_ns))
 
 
+def test_a_checkpoint_on_other_cameras_is_not_resumed(first_run, photos_dir, tmp_path):
+    """RUN holds a step-1 checkpoint and the SfM would be redone (other settings): its new
+    cameras would not fit the checkpoint, so exit 2 before any work."""
+    run, _, _ = first_run
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "checkpoint.npz").write_bytes(b"x")
+    with pytest.raises(ValueError, match="would be made anew.*max_features 4096 -> 128"):
+        sfm_if_photos(photos_dir, out, _args(sfm_out=str(run / "sfm"), sfm_max_features=128),
+                      progress=False)
+    data_dir, report = sfm_if_photos(photos_dir, out, _args(sfm_out=str(run / "sfm")),
+                                     progress=False)                 # the same: resumed
+    assert report["reused"]
+
+
 def test_a_dataset_is_used_as_it_is(first_run, capsys):
     run, _, _ = first_run
     data_dir, report = sfm_if_photos(run / "sfm", run / "x", _args(sfm_out="S"), progress=False)

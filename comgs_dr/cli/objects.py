@@ -88,7 +88,7 @@ def _cmd_reconstruct(args) -> int:
     data_dir, sfm = sfm_if_photos(args.data, args.out, args, progress=not args.quiet)
     preset = args.preset or ("scene" if sfm else "object")
     if sfm and not args.preset:
-        print("photos have no masks: the scene preset (--object to override)")
+        print("photos and video frames have no masks: the scene preset (--object to override)")
     cfg = RadianceConfig.from_preset(preset, **kw)
     data = load_dataset(data_dir, white_background=args.white_background,
                         resolution_scale=args.resolution_scale)

@@ -25,8 +25,10 @@ from comgs_dr.stages.sfm import (
     SfmConfig,
     ensure_sfm,
     is_unposed_capture,
+    reusable_output,
     run_sfm,
 )
+from comgs_dr.train.checkpoint import CKPT_NAME
 from comgs_dr.data.photos import VIDEO_EXTENSIONS
 
 DESCRIPTION = (
@@ -132,6 +134,14 @@ def sfm_if_photos(source, out_dir, args, progress: bool = True) -> tuple[Path, d
                   file=sys.stderr)
         return Path(source), None
     sfm_out = Path(sfm_out) if sfm_out else Path(out_dir) / "sfm"
+    ckpt = Path(out_dir) / CKPT_NAME
+    if ckpt.is_file():
+        reusable, why = reusable_output(source, sfm_out, cfg)
+        if reusable is None:
+            raise ValueError(f"{ckpt}: a step-1 checkpoint, but the structure from motion in "
+                             f"{sfm_out} would be made anew ({why}): its cameras would not "
+                             "match the checkpoint's surfels. Choose a new --out, or delete "
+                             "the checkpoint to start over")
     kind = "a video" if Path(source).is_file() else "photos without poses"
     say = (lambda s: print(s, flush=True)) if progress else (lambda s: None)
     report, reused = ensure_sfm(source, sfm_out, cfg, progress=progress, say=say)
