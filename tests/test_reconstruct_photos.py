@@ -154,3 +154,26 @@ def test_a_video_is_a_capture(tmp_path):
     w.close()
     assert S.is_unposed_capture(video)
     assert S.source_fingerprint(video) == S.source_fingerprint(video)
+
+
+@pytest.mark.slow
+def test_reconstruct_a_video_end_to_end(photos_dir, tmp_path, capsys):
+    """The capture as a 4-fps video: frames sampled, SfM into RUN/sfm, step 1 trained (the
+    photo path above is the fast test of the same code; ~25 s on 2 cores)."""
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    video = tmp_path / "clip.mp4"
+    w = imageio_ffmpeg.write_frames(str(video), (320, 240), fps=4, quality=9,
+                                    macro_block_size=16)
+    w.send(None)
+    for f in sorted(photos_dir.glob("*.jpg")):
+        w.send(np.ascontiguousarray(np.asarray(Image.open(f).convert("RGB"))).tobytes())
+    w.close()
+    out = tmp_path / "run"
+    rc = cli.main(["reconstruct", str(video), "--out", str(out), "--fps", "4", "--blur-group",
+                   "1", "--blur-min-ratio", "0", "--threads", "2", "--iterations", "2",
+                   "--eval-every", "1000", "--eval-views", "1", "-r", "4", "--quiet"])
+    o = capsys.readouterr().out
+    assert rc == 0 and "is a video: ran structure from motion" in o, o
+    r = json.loads((out / "sfm" / "sfm.json").read_text())
+    assert r["kind"] == "video" and r["registered"] >= N_VIEWS - 1
+    assert Path(json.loads((out / "run.json").read_text())["data"]) == (out / "sfm").resolve()
