@@ -97,14 +97,17 @@ def _cmd_compose(args) -> int:
     set_variant(args.mitsuba_variant)
     objects = _object_runs(args.object)
     cfg = compose_config(args.preset, args.shadow_probes, **field_overrides(args, ComposeConfig))
-    exposure = "grey-world" if args.grey_world else resolve_exposure(args.exposure_gain,
-                                                                     args.white_patch)
+    # the object -> scene gain (data.exposure); None: compose's default (gain 1, assumed)
+    exposure = ("grey-world" if args.grey_world else
+                resolve_exposure(args.exposure_gain, args.white_patch)
+                if args.exposure_gain is not None or args.white_patch is not None else None)
     estimator = placement_estimator(args.scene_run, args.out, args.env, say=print,
                                     **field_overrides(args, PlacementEstimateConfig))
     s = compose(args.scene_run, objects, args.placement, args.out, env=args.env,
-                estimator=estimator, cfg=cfg, progress=not args.quiet, exposure=exposure)
+                estimator=estimator, cfg=cfg, progress=not args.quiet,
+                **({"exposure": exposure} if exposure is not None else {}))
     print(summary_text(s, cfg, args.out))
-    for name, e in s["exposure"].items():
+    for name, e in s.get("exposure", {}).items():
         print(f"{name}: exposure gain {e['gain']} ({e['method']}, {e['exposure_ev']:+.2f} EV); "
               f"assumed: {e['assumed']}")
     return 0
