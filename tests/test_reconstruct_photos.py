@@ -3,7 +3,6 @@ first, into RUN/sfm or --sfm-out, reused when complete; the errors a user meets 
 import json
 import os
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
