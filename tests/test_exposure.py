@@ -143,13 +143,19 @@ def test_compose_multiplies_the_albedo_and_records_the_gain(tmp_path):
                         scene_views=4, min_consistent=1)
     sensor = perspective([0.0, -3.0, 0.8], target=[0.0, 0.0, 0.3], res=16, fov=12)
     images = {}
-    for key, exposure in (("none", None), ("gain", X.ExposureGain((0.5, 1.2, 3.0), "given"))):
+    for key, exposure in (("none", None), ("gain", X.ExposureGain((0.5, 1.2, 3.0), "given")),
+                          ("grey", "grey-world")):
         out = tmp_path / f"comp_{key}"
         s = compose(run, {"obj": d}, tmp_path / "t.json", out, env=tmp_path / "env.exr",
                     cfg=cfg, progress=False, exposure=exposure)
         m = json.loads((out / "composition.json").read_text())["objects"]["obj"]
         assert s["exposure"]["obj"] == m["exposure"]
         assert json.loads((out / "edit.json").read_text())["exposure"]["obj"] == m["exposure"]
+        if key == "grey":                                   # albedo x gain is grey
+            grey = np.multiply(albedo, m["exposure"]["gain"])
+            assert m["exposure"]["method"] == "grey-world" and np.ptp(grey) < 1e-4
+            assert LUMA @ m["exposure"]["gain"] == pytest.approx(1, abs=1e-5)
+            continue
         images[key] = np.array(mi.render(load_comp_scene(out, "noshadow", sensors=[sensor],
                                                          rays=64)))
         if exposure is None:
