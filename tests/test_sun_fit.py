@@ -193,7 +193,7 @@ def test_estimate_light_rescales_a_clipped_seen_sun_and_keeps_a_measured_one():
     assert kept is pano and rec is None and "not clipped" in what
 
 
-def _walled_scene(sun, seed=2):
+def _walled_scene(sun, seed=2, k=K_TRUE):
     """A 3×3 ground, a 0.8-high wall along x at y = 1 and a block in front of it; surfels
     shaded by ``sun`` and a uniform sky with their outward normals (the block's shadow ends on
     the wall, then climbs it)."""
@@ -225,7 +225,7 @@ def _walled_scene(sun, seed=2):
     seen = np.stack([~_box_hit(x + 1e-3 * n, np.tile(q, (len(x), 1)), boxes) for q in dirs], 1)
     sky = (w * seen).sum(1) / np.maximum(w.sum(1), 1e-12)
     rho = np.random.default_rng(seed).uniform(0.25, 0.6, (len(x), 1)) * [[1.0, 0.9, 0.8]]
-    L = rho / np.pi * (sky + K_TRUE * V * np.maximum(n @ sun, 0))[:, None] * 0.25
+    L = rho / np.pi * (sky + k * V * np.maximum(n @ sun, 0))[:, None] * 0.25
     d["sh"][:, 0] = (srgb_encode(np.clip(L, 0, 1)) - 0.5) / SH_C0
     p = SurfelParams.from_numpy(**d)
     return gbuffer_scene({"scene": p}, [], targets="weight"), p
@@ -247,3 +247,6 @@ def test_a_shadow_climbing_a_wall_fixes_the_low_suns_elevation():
     g = n[:, 2] > 0.9
     ground = sf.fit_sun(x[g], n[g], L[g], lambda d: vis(d)[g], CFG)
     assert not ground.usable or np.degrees(np.arccos(np.clip(ground.direction @ sun, -1, 1))) > 20
+    sc, p = _walled_scene(sun, k=0.0)                 # overcast: walls and their own shading,
+    none = sf.fit_sun_in_scene(sc, p, "srgb", CFG)     # no shadow: nothing invented
+    assert not none.usable and "no usable cast shadow" in none.reason, none.reason
