@@ -20,6 +20,7 @@ from comgs_dr.stages.reconstruct import RadianceConfig
 from comgs_dr.stages.relight import RelightConfig
 from comgs_dr.stages.render_run import RenderConfig
 from comgs_dr.stages.cut_object import CutConfig
+from comgs_dr.stages.place import PlaceConfig
 from comgs_dr.stages.sfm import SfmConfig
 
 #: (argv up to the flags, config, fields the command sets itself)
@@ -38,6 +39,8 @@ COMMANDS = [
     (["cut", "RUN", "--out", "O"], CutConfig, set()),
     (["decompose", "RUN"], MaterialConfig, set()),
     (["relight", "RUN", "--envmap", "e.exr"], RelightConfig, set()),
+    (["place", "S", "--object", "a=O", "--view", "0", "--pixel", "1", "2", "--out", "t.json"],
+     PlaceConfig, set()),
 ]
 
 

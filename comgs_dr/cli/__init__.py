@@ -18,6 +18,7 @@ against the parser):
     train-completion   train the panorama completion network
     train-light-head   train the light head (power of clipped lights)
     train-scene-label  train the indoor/outdoor classifier
+    place              stand an object on the scene's surface at a pixel -> transform.json
     compose            place objects in a scene, light them, cache occlusion
     render-comp        render a composition along cameras or a dataset's test views
 
@@ -49,6 +50,7 @@ from comgs_dr.cli.objects import (
     _add_relight,
     _add_render,
 )
+from comgs_dr.cli.place import _add_place
 from comgs_dr.cli.sfm import _add_sfm
 from comgs_dr.core.config import numeric_problem
 from comgs_dr.train.interrupt import TrainingInterrupted
@@ -56,7 +58,7 @@ from comgs_dr.train.interrupt import TrainingInterrupted
 _SUBCOMMANDS = (_add_sfm, _add_make_dataset, _add_demo, _add_report, _add_reconstruct,
                 _add_render, _add_export_mesh, _add_cut, _add_decompose, _add_relight, _add_estimate_light, _add_compare_light,
                 _add_train_completion, _add_train_light_head, _add_train_scene_label,
-                _add_compose, _add_render_comp)
+                _add_place, _add_compose, _add_render_comp)
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
