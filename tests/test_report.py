@@ -177,3 +177,22 @@ def test_demo_tiny_end_to_end_report(tmp_path, capsys):
                     "sun from the scene&#x27;s shadows"):
         assert caption in text
     assert "report:" in capsys.readouterr().out
+
+
+def test_report_shows_a_camera_paths_first_frame_and_links_its_video(tmp_path):
+    from comgs_dr.eval.report import build_report
+    comp = tmp_path / "comp"
+    frames = comp / "renders" / "sop"
+    frames.mkdir(parents=True)
+    for i, v in enumerate((40, 200)):
+        Image.fromarray(np.full((8, 12, 3), v, np.uint8)).save(frames / f"path_{i:04d}.png")
+    (tmp_path / "orbit.mp4").write_bytes(b"\0" * 2048)
+    (comp / "path_sop.json").write_text(json.dumps({
+        "variant": "sop", "path": "orbit", "renders": str(frames), "frame_seconds": 0.5,
+        "resolution": [12, 8], "per_frame": [{"name": "path_0000"}, {"name": "path_0001"}],
+        "video": str(tmp_path / "orbit.mp4"), "video_bytes": 2048,
+        "metrics": "skipped: path frames have no ground truth"}))
+    text = build_report(tmp_path)
+    assert "Camera path sop" in text and "<a href='orbit.mp4'>" in text
+    first = [im for im in inlined_images(text) if im.size == (12, 8)]
+    assert first and np.asarray(first[0].convert("RGB")).mean() == pytest.approx(40, abs=1)

@@ -15,6 +15,7 @@ import base64
 import html
 import io
 import json
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -253,6 +254,32 @@ def _summaries(run_dir: Path) -> str:
     return "\n".join(s)
 
 
+def _paths(run_dir: Path) -> str:
+    """Camera-path renders (``render-comp --path``: ``path_<variant>.json``): a table, the
+    first frame and a link to the video, relative to the report when it lies inside the
+    folder."""
+    s = []
+    for p in sorted(run_dir.rglob("path_*.json")):
+        m = json.loads(p.read_text())
+        renders = Path(m.get("renders", p.parent / "renders" / m.get("variant", "")))
+        first = sorted(renders.glob("path_*.png"))[:1] if renders.is_dir() else []
+        video = m.get("video")
+        s += [f"<h2>Camera path {html.escape(p.stem[5:])} "
+              f"({html.escape(p.parent.relative_to(run_dir).as_posix() or '.')})</h2>",
+              _table(["path", "frames", "s / frame", "resolution", "video", "KiB"],
+                     [[m.get("path"), len(m.get("per_frame", [])) or m.get("frames"),
+                       m.get("frame_seconds"), m.get("resolution"), video,
+                       round(m["video_bytes"] / 1024, 1) if "video_bytes" in m else ""]])]
+        if first:
+            s.append(_img(png_data_uri(first[0]), "the path's first frame"))
+        if video:
+            v = Path(video)
+            href = os.path.relpath(v, run_dir) if v.is_absolute() else v.as_posix()
+            s.append(f"<p><a href='{html.escape(Path(href).as_posix())}'>the video "
+                     f"({html.escape(v.name)})</a></p>")
+    return "\n".join(s)
+
+
 def _pictures(run_dir: Path, limit: int = 4) -> list[tuple[str, str]]:
     """[(caption, data uri)] of the folder's known pictures."""
     pics = []
@@ -306,7 +333,7 @@ def build_report(run_dir, title: str | None = None) -> str:
         parts += ["<h2>Error against run time, every stage</h2>",
                   _img(plot, "each stage's metrics.jsonl: PSNR or loss against wall time; "
                              "part timelines for stages without an error measure")]
-    summaries = _summaries(run_dir)
+    summaries = _summaries(run_dir) + _paths(run_dir)
     parts.append(summaries)
     if not logs and not pics and not summaries and not demo.is_file():
         raise FileNotFoundError(f"comgs report: nothing to report in {run_dir} (no "
