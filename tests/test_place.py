@@ -313,3 +313,67 @@ def test_cli_missing_runs(runs, tmp_path, capsys):
     assert "no point_cloud.ply" in capsys.readouterr().err
     assert cli.main(["place", str(runs["run"]), "--object", "a b=x"] + base) == 2
     assert "object names" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- measurement
+
+def measure(grid: int = 7) -> dict:
+    """The numbers of docs/place.md: over a ``grid`` × ``grid`` of pixels on the flat and the
+    tilted plane and on the sphere, the base's distance to the true ray–surface point (× the
+    object's size), the up vector's angle to the true normal, the lowest object surfel's
+    height over the true surface (× size) and the time of one placement (the ray, the
+    normal, the lift; the scene's Mitsuba shapes built once). ``python tests/test_place.py``."""
+    import time
+
+    from comgs_dr.stages.place import PlaceConfig, PlaceError, pixel_target, place_object
+    from comgs_dr.surfels import raycast
+    comgs_dr.set_variant("llvm_ad_rgb")
+    obj = _box()
+    cases = {"flat plane": (*_plane(0.0), [0.5, -4.0, 3.0], "plane", {}),
+             "tilted plane (20°)": (*_plane(20.0), [0.0, -4.0, 3.0], "plane", {}),
+             "tilted plane, --upright": (*_plane(20.0), [0.0, -4.0, 3.0], "plane",
+                                         {"upright": True}),
+             "sphere": (_sphere(), None, [0.0, -4.0, 2.5], "sphere", {})}
+    out = {}
+    for label, (scene, n, eye, kind, kw) in cases.items():
+        cam, cfg = _camera(eye, [0.0, 0.0, 0.0]), PlaceConfig(**kw)
+        trace = raycast.trace_scene(scene)
+        pixel_target(trace, cam, RES / 2, RES / 2, cfg)                  # compile the kernels
+        errs, angles, clear, secs = [], [], [], []
+        obj_pts = _means(obj)
+        for y in np.linspace(4, RES - 5, grid):
+            for x in np.linspace(4, RES - 5, grid):
+                t = time.perf_counter()
+                try:
+                    r = place_object(scene, obj, pixel_target(trace, cam, x, y, cfg), cfg, trace)
+                except PlaceError:
+                    continue                                         # off the sphere
+                secs.append(time.perf_counter() - t)
+                o, d = (np.asarray(v) for v in (r["target"]["ray_origin"],
+                                                r["target"]["ray_direction"]))
+                size = r["object_size"]
+                hit = _ray_plane(o, d, n) if kind == "plane" else _ray_sphere(o, d)
+                true_n = n if kind == "plane" else hit / SPHERE_R
+                placed = r["similarity"].points(obj_pts)
+                h = placed @ n if kind == "plane" else np.linalg.norm(placed, axis=1) - SPHERE_R
+                if kw.get("upright"):          # the base is lifted: measure it on the surface
+                    errs.append(abs(h.min()) / size)
+                else:
+                    errs.append(np.linalg.norm(r["base"] - hit) / size)
+                angles.append(_angle(r["up"], [0, 0, 1] if kw.get("upright") else true_n))
+                clear.append(h.min() / size)
+        out[label] = {"placements": len(errs), "base_error_max": float(np.max(errs)),
+                      "base_error_median": float(np.median(errs)),
+                      "up_error_deg_max": float(np.max(angles)),
+                      "lowest_surfel_min": float(np.min(clear)),
+                      "lowest_surfel_max": float(np.max(clear)),
+                      "seconds_median": float(np.median(secs))}
+    return out
+
+
+if __name__ == "__main__":
+    for k, v in measure().items():
+        print(f"{k:26s} n={v['placements']:2d}  base error max {v['base_error_max']:.3%} "
+              f"(median {v['base_error_median']:.3%}) of the object size, up error max "
+              f"{v['up_error_deg_max']:.2f}°, lowest surfel {v['lowest_surfel_min']:+.3%} .. "
+              f"{v['lowest_surfel_max']:+.3%}, {v['seconds_median'] * 1000:.0f} ms/placement")

@@ -5,7 +5,8 @@ one of the scene's photos (or a point), and write its placement to ``transform.j
    is column X, row Y from the top-left corner, the ray passes through its centre
    (X + ½, Y + ½)) is cast into the scene's surfels (``surfels.raycast``: the front-to-back
    composite of the ``surfel_gbuffer`` integrator); it hits where the accumulated opacity
-   reaches ``min_weight``, at the unbiased composited depth. ``--at X Y Z`` gives the point
+   reaches ``min_weight``, at that surfel's depth (the median depth: the first surface;
+   the composited mean depth also averages what lies behind it). ``--at X Y Z`` gives the point
    instead (the scene's ``point_cloud.ply`` frame).
 2. **Normal**: a plane fitted to the centres of the scene's surfels (opacity ≥
    ``min_opacity``) within ``normal_radius`` × the placed object's size of the point
@@ -74,7 +75,7 @@ class PlaceConfig:
     yaw_deg: turn (degrees) about the object's own up axis before it is stood on the surface.
     upright: stand the object along world up (+Z) instead of the surface normal.
     max_tilt_deg: with ``upright``, the steepest surface accepted (degrees from horizontal).
-    min_weight: the pixel's ray hits where its accumulated opacity reaches this (0–1).
+    min_weight: a ray hits where its accumulated opacity reaches this (0–1, exclusive).
     normal_radius: scene surfels this close to the point fit the surface plane (× size).
     min_opacity: fainter surfels (opacity 0–1) are ignored for the normal, the object's base
         and size.
@@ -108,9 +109,10 @@ class PlaceConfig:
             raise PlaceError(f"place: yaw_deg must be finite, got {self.yaw_deg!r}")
         if not 0.0 < self.max_tilt_deg <= 90.0:
             raise PlaceError(f"place: max_tilt_deg must be in (0, 90], got {self.max_tilt_deg!r}")
-        for name in ("min_weight", "min_opacity"):
-            if not 0.0 <= getattr(self, name) < 1.0:
-                raise PlaceError(f"place: {name} must be in [0, 1), got {getattr(self, name)!r}")
+        if not 0.0 < self.min_weight < 1.0:
+            raise PlaceError(f"place: min_weight must be in (0, 1), got {self.min_weight!r}")
+        if not 0.0 <= self.min_opacity < 1.0:
+            raise PlaceError(f"place: min_opacity must be in [0, 1), got {self.min_opacity!r}")
         if not 0.0 <= self.floater_share < 0.5:
             raise PlaceError(f"place: floater_share must be in [0, 0.5), got "
                              f"{self.floater_share!r}")
@@ -216,9 +218,10 @@ def lift(scene_trace, placed_points, up, top: float, cfg: PlaceConfig, size: flo
         pts = pts[np.random.default_rng(cfg.seed).choice(len(pts), cfg.max_rays, replace=False)]
     h = (pts - origin) @ up                                      # heights along up
     starts = pts + (top - h)[:, None] * up
-    r = raycast.cast(scene_trace, starts, np.broadcast_to(-up, starts.shape), cfg.max_hits)
-    hit = r["weight"] >= cfg.min_weight
-    s = top - r["depth"]
+    r = raycast.cast(scene_trace, starts, np.broadcast_to(-up, starts.shape), cfg.max_hits,
+                     level=cfg.min_weight)
+    hit = np.isfinite(r["depth"])
+    s = top - np.where(hit, r["depth"], 0.0)
     pen = np.where(hit, s - h, -np.inf)
     if not hit.any():
         return {"lift": cfg.clearance * size, "rays": int(len(pts)), "hits": 0,
@@ -247,16 +250,17 @@ def pixel_target(scene_trace, camera, x: float, y: float, cfg: PlaceConfig,
         raise PlaceError(f"{where}: pixel ({x:g}, {y:g}) is outside the {camera.width}×"
                          f"{camera.height} image")
     o, d = pixel_ray(camera, x, y)
-    r = raycast.cast(scene_trace, o[None], d[None], cfg.max_hits)
+    r = raycast.cast(scene_trace, o[None], d[None], cfg.max_hits, level=cfg.min_weight)
     w = float(r["weight"][0])
-    if not w >= cfg.min_weight:
+    if not np.isfinite(r["depth"][0]):
         raise PlaceError(f"{where}: the ray of pixel ({x:g}, {y:g}) hits nothing (accumulated "
                          f"opacity {w:.3f} < min_weight {cfg.min_weight}): pick a pixel on "
                          "the reconstructed surface")
     t = float(r["depth"][0])
     return Target(o + t * d, -d, r["normal"][0],
                   {"pixel": [float(x), float(y)], "ray_origin": o.tolist(),
-                   "ray_direction": d.tolist(), "depth": t, "opacity": w})
+                   "ray_direction": d.tolist(), "depth": t,
+                   "mean_depth": float(r["mean_depth"][0]), "opacity": w})
 
 
 def place_object(scene_params: SurfelParams, obj_params: SurfelParams, target: Target,
