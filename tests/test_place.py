@@ -114,6 +114,23 @@ def test_pixel_ray_is_the_renderers_ray():
         assert np.allclose(o, cam.center) and _angle(d, dirs[y, x]) < 1e-3
 
 
+def test_cast_median_depth_is_the_first_surface(scenes):
+    """Through a sphere of 0.95-opaque surfels the mean composited depth takes in its back;
+    the median depth (where the opacity reaches the level) is the front surface."""
+    from comgs_dr.surfels import raycast
+    trace = raycast.trace_scene(scenes["sphere"])
+    g = np.linspace(-0.6, 0.6, 15)
+    o = np.array([[x, -4.0, z] for x in g for z in g] + [[3.0, -4.0, 0.0]])
+    d = np.tile([0.0, 1.0, 0.0], (len(o), 1))
+    r = raycast.cast(trace, o, d, level=0.5)
+    hits = np.array([_ray_sphere(p, q) for p, q in zip(o[:-1], d[:-1])])
+    true_t = ((hits - o[:-1]) * d[:-1]).sum(1)
+    assert np.abs(r["depth"][:-1] - true_t).max() < 4e-3 and r["weight"][:-1].min() > 0.9
+    assert np.abs(r["mean_depth"][:-1] - true_t).max() > 0.05         # the back mixed in
+    assert max(_angle(n, h) for n, h in zip(r["normal"][:-1], hits)) < 6.0   # facing the ray
+    assert np.isnan(r["depth"][-1]) and r["weight"][-1] == 0.0
+
+
 def test_object_base_and_pose():
     from comgs_dr.stages.place import PlaceConfig, object_shape, pose, up_rotation
     shape = object_shape(_box(), PlaceConfig())
@@ -293,6 +310,9 @@ def test_cli_writes_and_appends_the_placement(runs, capsys):
     (["--view", "v0"], "--view VIEW --pixel X Y"),
     (["--at", "0", "0", "0", "--view", "v0", "--pixel", "1", "1"], "not both"),
     (["--view", "v0", "--pixel", "24", "24", "--floater-share", "0.7"], "floater_share"),
+    (["--view", "v0", "--pixel", "24", "24", "--scale", "-1"], "scale must be"),
+    (["--view", "v0", "--pixel", "nan", "24"], "--pixel"),
+    (["--at", "0", "inf", "0"], "--at"),
 ])
 def test_cli_errors_exit_2_and_say_why(runs, capsys, extra, message):
     from comgs_dr import cli

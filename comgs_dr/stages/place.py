@@ -104,22 +104,22 @@ class PlaceConfig:
         for name in ("scale", "normal_radius"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
-                raise PlaceError(f"place: {name} must be a finite number > 0, got {v!r}")
+                raise PlaceError(f"PlaceConfig.{name} must be a finite number > 0, got {v!r}")
         if not math.isfinite(self.yaw_deg):
-            raise PlaceError(f"place: yaw_deg must be finite, got {self.yaw_deg!r}")
+            raise PlaceError(f"PlaceConfig.yaw_deg must be finite, got {self.yaw_deg!r}")
         if not 0.0 < self.max_tilt_deg <= 90.0:
-            raise PlaceError(f"place: max_tilt_deg must be in (0, 90], got {self.max_tilt_deg!r}")
+            raise PlaceError(f"PlaceConfig.max_tilt_deg must be in (0, 90], got {self.max_tilt_deg!r}")
         if not 0.0 < self.min_weight < 1.0:
-            raise PlaceError(f"place: min_weight must be in (0, 1), got {self.min_weight!r}")
+            raise PlaceError(f"PlaceConfig.min_weight must be in (0, 1), got {self.min_weight!r}")
         if not 0.0 <= self.min_opacity < 1.0:
-            raise PlaceError(f"place: min_opacity must be in [0, 1), got {self.min_opacity!r}")
+            raise PlaceError(f"PlaceConfig.min_opacity must be in [0, 1), got {self.min_opacity!r}")
         if not 0.0 <= self.floater_share < 0.5:
-            raise PlaceError(f"place: floater_share must be in [0, 0.5), got "
+            raise PlaceError(f"PlaceConfig.floater_share must be in [0, 0.5), got "
                              f"{self.floater_share!r}")
         if not (math.isfinite(self.clearance) and self.clearance >= 0):
-            raise PlaceError(f"place: clearance must be >= 0, got {self.clearance!r}")
+            raise PlaceError(f"PlaceConfig.clearance must be >= 0, got {self.clearance!r}")
         if self.max_rays < 1 or self.max_hits < 1:
-            raise PlaceError("place: max_rays and max_hits must be >= 1")
+            raise PlaceError("PlaceConfig.max_rays and max_hits must be >= 1")
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -389,12 +389,12 @@ def place(scene_run, name: str, object_run, out, *, view=None, pixel=None, at=No
         seconds[key], clock = round(now - clock, 4), now
 
     if not name or not name.replace("_", "").replace("-", "").isalnum():
-        raise PlaceError(f"place: object names must be letters, digits, '-' or '_', got "
+        raise PlaceError(f"object names must be letters, digits, '-' or '_', got "
                          f"{name!r}")
     if (at is None) == (pixel is None):
-        raise PlaceError("place: give --view VIEW --pixel X Y, or --at X Y Z")
+        raise PlaceError("give --view VIEW --pixel X Y, or --at X Y Z")
     if pixel is not None and view is None:
-        raise PlaceError("place: --pixel needs --view (an image name or index)")
+        raise PlaceError("--pixel needs --view (an image name or index)")
     scene_run = Path(scene_run)
     info = read_run_info(scene_run)
     ply = scene_run / "point_cloud.ply"
@@ -414,7 +414,7 @@ def place(scene_run, name: str, object_run, out, *, view=None, pixel=None, at=No
     else:
         p = np.asarray(at, np.float64).reshape(3)
         if not np.isfinite(p).all():
-            raise PlaceError(f"place: --at needs 3 finite numbers, got {list(at)}")
+            raise PlaceError(f"--at needs 3 finite numbers, got {list(at)}")
         cams = np.array([v.camera.center for v in data.train + data.test]).reshape(-1, 3)
         towards = (cams.mean(0) - p) if len(cams) else WORLD_UP
         towards = towards / max(np.linalg.norm(towards), 1e-30)
