@@ -191,6 +191,25 @@ def test_tilted_plane_normal_and_upright_lift(scenes):
         _place(plane, obj, cam, (24, 24), upright=True, max_tilt_deg=15.0)
 
 
+def test_lift_over_a_step():
+    """Stood on the ground beside a 0.1-high step that reaches under its footprint, the object
+    is raised onto the step: none of its surfels is inside it."""
+    from comgs_dr.surfels.from_mesh import from_mesh
+    from comgs_dr.stages.place import PlaceConfig, Target, place_object
+    ground = trimesh.Trimesh(np.array([[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]], float),
+                             [[0, 1, 2], [0, 2, 3]], process=False)
+    step = trimesh.creation.box(extents=(1.0, 2.0, 0.1))
+    step.apply_translation([0.6, 0.0, 0.05])                    # top at z = 0.1 from x = 0.1
+    scene = from_mesh(trimesh.util.concatenate([ground, step]), 16000, seed=4)
+    obj = _box()
+    r = place_object(scene, obj, Target(np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]),
+                                        None, {}), PlaceConfig(upright=True))
+    size = r["object_size"]
+    assert r["lift"]["lift"] == pytest.approx(0.1, abs=0.01 * size)
+    placed = r["similarity"].points(_means(obj))
+    assert placed[:, 2].min() > 0.1 - 0.01 * size and r["base"][2] == pytest.approx(0.1, abs=0.01 * size)
+
+
 def test_sphere_base_on_the_surface_up_along_the_radius(scenes):
     sphere, obj = scenes["sphere"], scenes["box"]
     cam = _camera([0.0, -4.0, 2.5], [0.0, 0.0, 0.0])
