@@ -11,8 +11,8 @@ one of the scene's photos (or a point), and write its placement to ``transform.j
 2. **Normal**: a plane fitted to the centres of the scene's surfels (opacity ≥
    ``min_opacity``) within ``normal_radius`` × the placed object's size of the point
    (``sops.occlusion.plane_normals``: Tukey-reweighted, so a wall meeting the ground drops
-   out), turned towards the camera (or the composited normal's side). Fewer than 3 surfels
-   there: the composited normal of the ray.
+   out), turned towards the camera (with ``--at``: the cameras' mean position). Fewer than
+   3 surfels there: the normal of the surfel the ray hit.
 3. **Up**: the normal, or world up (+Z) with ``upright`` — refused when the surface is
    tilted more than ``max_tilt_deg`` from horizontal.
 4. **Pose**: the object's own frame has +Z up (as ``comgs cut`` writes it, and
@@ -108,7 +108,8 @@ class PlaceConfig:
         if not math.isfinite(self.yaw_deg):
             raise PlaceError(f"PlaceConfig.yaw_deg must be finite, got {self.yaw_deg!r}")
         if not 0.0 < self.max_tilt_deg <= 90.0:
-            raise PlaceError(f"PlaceConfig.max_tilt_deg must be in (0, 90], got {self.max_tilt_deg!r}")
+            raise PlaceError(f"PlaceConfig.max_tilt_deg must be in (0, 90], got "
+                             f"{self.max_tilt_deg!r}")
         if not 0.0 < self.min_weight < 1.0:
             raise PlaceError(f"PlaceConfig.min_weight must be in (0, 1), got {self.min_weight!r}")
         if not 0.0 <= self.min_opacity < 1.0:
@@ -239,7 +240,7 @@ class Target:
     """Where the object goes: the surface point and how it was found."""
     point: np.ndarray                   # [3] world
     towards: np.ndarray                 # [3] unit, from the surface to the viewer
-    ray_normal: np.ndarray | None       # the composited normal of the pixel's ray
+    ray_normal: np.ndarray | None       # the normal of the surfel the pixel's ray hit
     record: dict                        # what the summary reports
 
 
@@ -457,7 +458,7 @@ def summary_lines(s: dict) -> list[str]:
     return [
         f"{how}, point {_v(s['hit'])}",
         f"surface normal {_v(s['normal'])} (plane of {s['normal_neighbours']} surfels"
-        + (f"; {ang:.1f}° from the ray's composited normal" if ang is not None else "")
+        + (f"; {ang:.1f}° from the hit surfel's own normal" if ang is not None else "")
         + f"), tilt {s['tilt_deg']:.1f}° from world up",
         f"up {_v(s['up'])} ({'world up, --upright' if s['config']['upright'] else 'normal'}), "
         f"yaw {s['config']['yaw_deg']:g}°, scale {s['config']['scale']:g}: object "
