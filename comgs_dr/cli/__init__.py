@@ -21,6 +21,7 @@ against the parser):
     place              stand an object on the scene's surface at a pixel -> transform.json
     compose            place objects in a scene, light them, cache occlusion
     render-comp        render a composition along cameras or a dataset's test views
+    view               web viewer: move objects with a gizmo, see the composite (viser)
 
 Each command has a parser builder ``_add_<name>(subparsers)`` in one of the modules of this
 package (``datasets``, ``objects``, ``lighting``, ``composition``) that sets
@@ -52,13 +53,14 @@ from comgs_dr.cli.objects import (
 )
 from comgs_dr.cli.place import _add_place
 from comgs_dr.cli.sfm import _add_sfm
+from comgs_dr.cli.view import _add_view
 from comgs_dr.core.config import numeric_problem
 from comgs_dr.train.interrupt import TrainingInterrupted
 
 _SUBCOMMANDS = (_add_sfm, _add_make_dataset, _add_demo, _add_report, _add_reconstruct,
                 _add_render, _add_export_mesh, _add_cut, _add_decompose, _add_relight, _add_estimate_light, _add_compare_light,
                 _add_train_completion, _add_train_light_head, _add_train_scene_label,
-                _add_place, _add_compose, _add_render_comp)
+                _add_place, _add_compose, _add_render_comp, _add_view)
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
