@@ -110,9 +110,10 @@ class ViewerApp:
     def _add_scene(self) -> None:
         s = self.session
         pts, cols = s.scene_points()
-        lo, hi = np.percentile(pts, 2, 0), np.percentile(pts, 98, 0)
-        self.point_size = float(np.linalg.norm(hi - lo)) * 0.004
-        self.server.scene.add_point_cloud("/scene", pts, cols, point_size=self.point_size)
+        sizes = [float(np.linalg.norm(np.subtract(*s.bounds(n)))) for n in s.names]
+        self.point_size = 0.01 * float(np.median(sizes))        # 1 % of an object's size
+        self.server.scene.add_point_cloud("/scene", pts, cols, point_size=self.point_size,
+                                          point_shape="circle")
         self.gizmos = {}
         for n in s.names:
             sim = s.world[n]
@@ -123,7 +124,7 @@ class ViewerApp:
             p, c = s.object_points(n)
             self.server.scene.add_point_cloud(f"/objects/{n}/points",
                                               (p * sim.scale).astype(np.float32), c,
-                                              point_size=self.point_size)
+                                              point_size=self.point_size, point_shape="circle")
             g.on_update(partial(self._on_gizmo, n))
             self.gizmos[n] = g
 
