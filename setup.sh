@@ -2,7 +2,7 @@
 # Idempotent set-up for comgs_dr on Debian/Ubuntu, then optionally run the demo or the tests.
 #   bash setup.sh            # set up only
 #   bash setup.sh demo       # set up if needed, then `comgs demo` (no download, writes out/demo/)
-#   bash setup.sh test       # set up if needed, then lint-imports and the whole test suite
+#   bash setup.sh test       # set up if needed (and Chromium), then lint-imports and the whole test suite
 set -euo pipefail
 cd "$(dirname "$0")"
 VENV="${COMGS_VENV:-.venv}"
@@ -29,9 +29,21 @@ if [ ! -f "$stamp" ] || [ setup.cfg -nt "$stamp" ] || [ pyproject.toml -nt "$sta
   "$VENV/bin/python" -c "import comgs_dr, mitsuba, drjit, torch" && touch "$stamp"
 fi
 
+# 3. (tests only) Debian's Chromium for the browser test of `comgs view`
+#    (tests/test_view_browser.py drives /usr/bin/chromium with playwright; no `playwright
+#    install`, no download). About 100 s of apt on a clean machine; skipped once installed.
+install_chromium() {
+  if [ ! -x /usr/bin/chromium ]; then
+    echo "[setup] installing chromium through apt (the browser test of comgs view)"
+    { $SUDO apt-get update -qq &&
+      $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; } ||
+      echo "[setup] chromium could not be installed: tests/test_view_browser.py will skip" >&2
+  fi
+}
+
 case "${1:-}" in
   demo) shift; exec "$VENV/bin/comgs" demo "$@" ;;
-  test) shift; "$VENV/bin/lint-imports"
+  test) shift; install_chromium; "$VENV/bin/lint-imports"
         export COMGS_NOTEBOOK_TINY="${COMGS_NOTEBOOK_TINY:-1}"   # notebooks at smoke-test sizes
         export PYTHONFAULTHANDLER=1   # a crash in native code prints the Python stack
         exec "$VENV/bin/python" -m pytest -q "$@" ;;

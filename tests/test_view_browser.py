@@ -1,0 +1,127 @@
+"""``comgs view`` in a real browser: the command runs in a subprocess on a tiny two-object
+composition, headless Chromium (Debian's ``/usr/bin/chromium``, driven by playwright; no
+``playwright install``) opens it, waits for the first composite frame, moves object ``a``
+through the viewer's GUI (its position field and "apply move of a", the path a gizmo's
+release takes), saves the placement, and checks that ``transform.json`` and the frame shown
+changed accordingly. Skipped when Chromium or playwright is missing (``setup.sh`` installs
+both)."""
+import base64
+import io
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+CHROMIUM = Path("/usr/bin/chromium")
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+DY = 0.5          # the move: +0.5 along world y
+
+
+def _requirements():
+    if not CHROMIUM.is_file():
+        pytest.skip(f"{CHROMIUM} not found: `apt-get install -y chromium` (setup.sh does)")
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        pytest.skip("playwright not installed: pip install playwright (the [dev] extra)")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _shown_image(page) -> np.ndarray:
+    """The composite panel's image, decoded (RGB uint8)."""
+    from PIL import Image
+    b64 = page.evaluate("""async () => {
+        const img = [...document.querySelectorAll('img')].find(i => i.src.startsWith('blob:'));
+        const blob = await (await fetch(img.src)).blob();
+        const buf = new Uint8Array(await blob.arrayBuffer());
+        let s = ''; for (const b of buf) s += String.fromCharCode(b);
+        return btoa(s);
+    }""")
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode(b64))).convert("RGB"))
+
+
+def _wait_status(page, text: str, timeout_s: float = 240.0) -> str:
+    """The status line once it contains ``text``."""
+    page.wait_for_function("t => [...document.querySelectorAll('p, div')].some(e => "
+                           "e.children.length <= 3 && e.textContent.includes(t))", arg=text,
+                           timeout=timeout_s * 1000)
+    return page.evaluate("t => [...document.querySelectorAll('p')].map(e => e.textContent)"
+                         ".find(s => s.includes(t))", text) or ""
+
+
+def test_view_in_headless_chromium(tmp_path):
+    _requirements()
+    from playwright.sync_api import sync_playwright
+    from test_view import A0, B0, make_two_ball_comp
+    t_start = time.perf_counter()
+    comp = make_two_ball_comp(tmp_path)
+    port = _free_port()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "comgs_dr.cli", "view", str(comp), "--port",
+                             str(port), "--res", "48", "--rays", "4", "--quiet",
+                             "--mitsuba-variant", "llvm_ad_rgb"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        line, deadline = "", time.time() + 180
+        while "comgs view: http" not in line:
+            line = proc.stdout.readline()
+            assert line or proc.poll() is None, "comgs view exited before serving"
+            assert time.time() < deadline, "comgs view did not start"
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
+            page = browser.new_page(viewport={"width": 1000, "height": 700})
+            page.goto(f"http://127.0.0.1:{port}/")
+            # the first composite from this viewer's camera (set by the server on connect)
+            _wait_status(page, "viewer connected")
+            page.wait_for_selector("img[src^='blob:']")
+            before = _shown_image(page)
+            assert before.shape == (48, 48, 3) and before.std() > 1
+            # move a by +DY along y: its position field, then "apply move of a"
+            y = page.get_by_label("a position").locator(
+                "xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]//input").nth(1)
+            y.fill(f"{A0[1] + DY:.3f}")
+            y.press("Enter")
+            page.get_by_role("button", name="apply move of a").click()
+            status = _wait_status(page, "moved")
+            assert "from release" in status
+            page.wait_for_timeout(500)
+            after = _shown_image(page)
+            page.get_by_role("button", name="save placement").click()
+            _wait_status(page, "saved the placement")
+            browser.close()
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    # transform.json: a moved by DY along y (dataset frame = world here), b where it was
+    t = json.loads((comp / "transform.json").read_text())
+    W = np.asarray(json.loads((comp / "composition.json").read_text())["world_from_source"])
+    a = W @ np.asarray(t["a"]["transform"]).reshape(4, 4)
+    b = W @ np.asarray(t["b"]["transform"]).reshape(4, 4)
+    assert np.allclose(a[:3, 3], A0 + [0, DY, 0], atol=1e-3)
+    assert np.allclose(b[:3, 3], B0, atol=1e-9)
+    # the frame shown changed, and is the one the viewer wrote after the move
+    assert np.abs(after.astype(int) - before.astype(int)).max() > 40
+    from PIL import Image
+    preview = np.asarray(Image.open(comp / "view" / "preview.png").convert("RGB"))
+    assert np.abs(preview.astype(int) - after.astype(int)).max() <= 2
+    recs = [json.loads(x) for x in (comp / "view" / "log.jsonl").read_text().splitlines()]
+    moved = [r for r in recs if r.get("why") == "moved a"]
+    assert moved and all("_a" in n.split("occ_")[1] for n in moved[-1]["traced"])
+    print(f"browser test: {time.perf_counter() - t_start:.1f} s; move to frame "
+          f"{moved[-1]['total_s']:.2f} s")
