@@ -21,10 +21,17 @@ if os.environ.get("COMGS_GUARD_ALLOC") == "1":       # diagnostic: see tests/gua
     allocator().__enter__()
 
 
+def pytest_addoption(parser):
+    parser.addoption("--mitsuba-variant", default=os.environ.get("COMGS_TEST_VARIANT",
+                                                                 "llvm_ad_rgb"),
+                     help="the Mitsuba variant the tests run in (llvm_ad_rgb, the first-class "
+                          "CPU target, by default; cuda_ad_rgb: benchmarks/gpu_check.py)")
+
+
 @pytest.fixture(scope="session", autouse=True)
-def variant():
-    """Every test runs in llvm_ad_rgb (the first-class CPU target)."""
-    return comgs_dr.set_variant("llvm_ad_rgb")
+def variant(request):
+    """Every test runs in ``--mitsuba-variant`` (llvm_ad_rgb unless told)."""
+    return comgs_dr.set_variant(request.config.getoption("--mitsuba-variant"))
 
 
 @pytest.fixture(scope="module")
