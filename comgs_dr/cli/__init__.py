@@ -22,6 +22,7 @@ against the parser):
     compose            place objects in a scene, light them, cache occlusion
     render-comp        render a composition along cameras or a dataset's test views
     view               web viewer: move objects with a gizmo, see the composite (viser)
+    batch              run a jobs file (reconstruct ... render-comp) as a Ray task graph
 
 Each command has a parser builder ``_add_<name>(subparsers)`` in one of the modules of this
 package (``datasets``, ``objects``, ``lighting``, ``composition``) that sets
@@ -34,6 +35,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from comgs_dr.cli.batch import _add_batch
 from comgs_dr.cli.composition import _add_compose, _add_render_comp
 from comgs_dr.cli.cut import _add_cut
 from comgs_dr.cli.datasets import _add_demo, _add_make_dataset, _add_report
@@ -60,7 +62,7 @@ from comgs_dr.train.interrupt import TrainingInterrupted
 _SUBCOMMANDS = (_add_sfm, _add_make_dataset, _add_demo, _add_report, _add_reconstruct,
                 _add_render, _add_export_mesh, _add_cut, _add_decompose, _add_relight, _add_estimate_light, _add_compare_light,
                 _add_train_completion, _add_train_light_head, _add_train_scene_label,
-                _add_place, _add_compose, _add_render_comp, _add_view)
+                _add_place, _add_compose, _add_render_comp, _add_view, _add_batch)
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(

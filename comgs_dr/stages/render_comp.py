@@ -20,12 +20,19 @@ them as an mp4 (imageio-ffmpeg).
 
 :func:`render_comp` runs the phases in order: check the settings
 (:meth:`RenderCompConfig.validate`), the cameras and their ground truth, load the scene,
-render each frame (:func:`_render_frame`), summarise.
+render each frame (:func:`_render_frame`), summarise. Each frame is written through a
+temporary file and a rename: a killed render leaves no partial PNG (its temporary is removed
+when that frame is next rendered). ``frame_indices``, ``done`` and ``on_frame`` split one
+render over processes (``comgs_dr.batch``): each renders a subset of the frames, the same
+bytes as the whole run, and a last call summarises.
 """
 from __future__ import annotations
 
+import io
 import json
 import logging
+import os
+import secrets
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,17 +40,18 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+from PIL import Image
 from tqdm.auto import tqdm
 
 from comgs_dr.core import runlog
 from comgs_dr.core.colorspace import srgb_encode
 from comgs_dr.data import camera_path, comp_folder
-from comgs_dr.data.images import read_image, write_png8
+from comgs_dr.data.images import read_image, to_u8
 from comgs_dr.integrators.comgs_composite import is_file_property
 from comgs_dr.eval import comp_region
 from comgs_dr.eval.metrics import psnr, ssim
 from comgs_dr.surfels.edit import parse_material_spec
-from comgs_dr.train.checkpoint import atomic_write_text
+from comgs_dr.train.checkpoint import atomic_write_text, remove_stale_temporaries
 
 VARIANTS = ("sop", "trace", "noshadow", "paste")
 MAX_SIDE = 16384        # px a side; and W·H ≤ (MAX_SIDE/2)²: the per-hit buffers (W·H·max_hits
@@ -149,14 +157,23 @@ def load_comp_scene(comp_dir, variant: str = "sop", materials: dict | None = Non
 def render_comp(comp_dir, cameras=None, variant: str = "sop", gt_dir=None,
                 materials: dict | None = None, res=None, rays: int | None = None,
                 seed: int = 0, progress: bool = True, path=None, frames: int | None = None,
-                video=None, fps: float = 24.0) -> dict:
+                video=None, fps: float = 24.0, frame_indices=None, done: dict | None = None,
+                on_frame=None) -> dict:
     """Render every camera of ``cameras`` (a NeRF ``transforms*.json``, or a dataset
     folder / ``poses_bounds.npy``: its test views, ``comp_folder.camera_source``), or with
     ``path`` the frames of a camera path placed by those cameras (None: the scene run's
     dataset, as step 1 loads it); returns the metrics dict (written to
     ``metrics_<variant>.json`` when ``gt_dir`` is given). ``variant``, ``materials``,
     ``res``, ``rays``, ``seed``, ``path``, ``frames``, ``video``, ``fps``: see
-    :class:`RenderCompConfig`."""
+    :class:`RenderCompConfig`.
+
+    Sharding (``comgs_dr.batch``): ``frame_indices`` (a list, or a slice such as
+    ``slice(k, None, n)``) renders only those frames (frame i
+    still with ``seed + i``) and returns {"per_frame": their records, ...} without writing
+    the metrics, path summary, video or ``render_<variant>.metrics.jsonl``; ``done``
+    ({frame name: its record}) skips the frames whose PNG is already there and takes their
+    records as given (the scene is not loaded when nothing is left to render);
+    ``on_frame(i, record)`` is called once frame i's PNG is in place."""
     RenderCompConfig(variant, materials, res, rays, seed, path, frames, video, fps).validate()
     comp_dir = Path(comp_dir)
     manifest = comp_folder.read_manifest(comp_dir)
@@ -177,11 +194,16 @@ def render_comp(comp_dir, cameras=None, variant: str = "sop", gt_dir=None,
     regions = _region_truth(gt_dir, cams) if gt_dir is not None else {}
     extra = {"rays": int(rays), "shadow_rays": int(rays)} if rays else {}
     clip = comp_folder.clip_for(manifest, cams)        # scaled to the composition
-    scene = load_comp_scene(comp_dir, variant, materials,
-                            [comp_folder.sensor_dict(cams[0], clip=clip)], **extra)
+
+    def scene():
+        return load_comp_scene(comp_dir, variant, materials,
+                               [comp_folder.sensor_dict(cams[0], clip=clip)], **extra)
     out_dir = _render_folder(comp_dir, variant, cams, gt_dir)
     recs = _render_frames(scene, cams, comp_dir, out_dir, variant, gts, regions, seed,
-                          progress, clip)
+                          progress, clip, frame_indices, done or {}, on_frame)
+    if frame_indices is not None:                # a shard: the last call summarises
+        return {"variant": variant, "frames": len(recs), "renders": str(out_dir),
+                "per_frame": recs}
     summary = _summarise(recs, cams, comp_dir, cameras, variant, out_dir, gts, regions)
     if path is not None:
         summary["path"] = str(path)
@@ -307,27 +329,42 @@ def _render_folder(comp_dir: Path, variant: str, cams: list, gt_dir) -> Path:
     return out_dir
 
 
-def _render_frames(scene, cams: list, comp_dir: Path, out_dir: Path, variant: str, gts: dict,
-                   regions: dict, seed: int, progress: bool, clip: dict | None = None
-                   ) -> list[dict]:
+def _render_frames(load_scene, cams: list, comp_dir: Path, out_dir: Path, variant: str,
+                   gts: dict, regions: dict, seed: int, progress: bool, clip: dict | None = None,
+                   indices=None, done: dict | None = None, on_frame=None) -> list[dict]:
     """Render every camera (frame i with ``seed + i``, its own pose and intrinsics) into
-    ``out_dir``; per frame a record (name, seconds, scores), each also appended to
-    ``render_<variant>.metrics.jsonl``."""
-    sensor = scene.sensors()[0]
-    params = mi.traverse(sensor)
-    perspective = sensor.class_name() == "PerspectiveCamera"
+    ``out_dir``, or those of ``indices`` (a list or a slice); per frame a record (name, seconds, scores), each
+    also appended to ``render_<variant>.metrics.jsonl`` (not for ``indices``). A frame of
+    ``done`` whose PNG is there keeps its record; ``load_scene()`` is called at the first
+    frame to render."""
+    scene = sensor = params = perspective = None
     frames = []
     size = (cams[0]["width"], cams[0]["height"])
     stage, jsonl = f"render-comp {variant}", f"render_{variant}.{runlog.LOG_NAME}"
-    runlog.rewrite(comp_dir, [], name=jsonl)        # (render time, per-frame error) records
-    for i, c in enumerate(tqdm(cams, desc=f"render-comp {variant}", unit="frame",
-                               disable=not progress)):
+    if indices is None:                             # (render time, per-frame error) records
+        runlog.rewrite(comp_dir, [], name=jsonl)
+    todo = range(len(cams)) if indices is None else range(len(cams))[indices] \
+        if isinstance(indices, slice) else [int(j) for j in indices]
+    for i in tqdm(todo,
+                  desc=f"render-comp {variant}", unit="frame", disable=not progress):
+        c = cams[i]
         if (c["width"], c["height"]) != size:
             raise ValueError(f"render-comp: frame {c['name']} is {c['width']}×{c['height']}, "
                              f"the first frame {size[0]}×{size[1]}: one size per camera file")
-        rec = _render_frame(scene, _frame_sensor(sensor, params, perspective, c, clip),
-                            c["name"], seed + i, out_dir, gts, regions)
+        rec = (done or {}).get(c["name"])
+        if rec is None or not (out_dir / f"{c['name']}.png").is_file():
+            if scene is None:
+                scene = load_scene()
+                sensor = scene.sensors()[0]
+                params = mi.traverse(sensor)
+                perspective = sensor.class_name() == "PerspectiveCamera"
+            rec = _render_frame(scene, _frame_sensor(sensor, params, perspective, c, clip),
+                                c["name"], seed + i, out_dir, gts, regions)
+            if on_frame is not None:
+                on_frame(i, rec)
         frames.append(rec)
+        if indices is not None:
+            continue
         runlog.append(comp_dir, runlog.record(stage, sum(f["seconds"] for f in frames),
                                               frame=i, **{k: v for k, v in rec.items()
                                                           if k in ("psnr", "ssim", "psnr_region")}),
@@ -361,7 +398,7 @@ def _render_frame(scene, sensor, name: str, seed: int, out_dir: Path, gts: dict,
     if not np.all(np.isfinite(lin)):
         raise FloatingPointError(f"render-comp: frame {name} has non-finite pixels")
     disp = np.clip(srgb_encode(np.clip(lin, 0.0, None)), 0.0, 1.0)
-    write_png8(out_dir / f"{name}.png", disp)
+    write_frame_png(out_dir / f"{name}.png", disp)
     rec = {"name": name, "seconds": dt}
     if name in gts:
         q = np.round(disp * 255.0) / 255.0          # score the written 8-bit image
@@ -372,6 +409,24 @@ def _render_frame(scene, sensor, name: str, seed: int, out_dir: Path, gts: dict,
         if rs["region_pixels"]:
             rec["psnr_region"] = -10 * np.log10(max(rs["region_mse"], 1e-12))
     return rec
+
+
+def write_frame_png(path: Path, disp: np.ndarray) -> None:
+    """``disp`` (display values in [0, 1]) as an 8-bit PNG, the bytes ``write_png8``
+    writes, through a temporary file and a rename: a killed process leaves no partial PNG,
+    and what an earlier killed write left (``<name>.png.*.tmp``) is removed first."""
+    remove_stale_temporaries(path)
+    buf = io.BytesIO()
+    Image.fromarray(to_u8(disp)).save(buf, format="PNG")
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+    try:                               # (mode 0666 less the umask, as a plain write)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        with os.fdopen(fd, "wb") as f:
+            f.write(buf.getvalue())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def _summarise(frames: list, cams: list, comp_dir: Path, cameras, variant: str, out_dir: Path,
