@@ -53,13 +53,14 @@ def _shown_image(page) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(base64.b64decode(b64))).convert("RGB"))
 
 
-def _wait_status(page, text: str, timeout_s: float = 240.0) -> str:
-    """The status line once it contains ``text``."""
-    page.wait_for_function("t => [...document.querySelectorAll('p, div')].some(e => "
-                           "e.children.length <= 3 && e.textContent.includes(t))", arg=text,
+def _wait_status(page, pattern: str, timeout_s: float = 240.0) -> str:
+    """The first status paragraph matching the regular expression ``pattern``, once there
+    is one."""
+    page.wait_for_function("p => [...document.querySelectorAll('p')].some(e => "
+                           "new RegExp(p).test(e.textContent))", arg=pattern,
                            timeout=timeout_s * 1000)
-    return page.evaluate("t => [...document.querySelectorAll('p')].map(e => e.textContent)"
-                         ".find(s => s.includes(t))", text) or ""
+    return page.evaluate("p => [...document.querySelectorAll('p')].map(e => e.textContent)"
+                         ".find(s => new RegExp(p).test(s))", pattern)
 
 
 def test_view_in_headless_chromium(tmp_path):
@@ -70,22 +71,23 @@ def test_view_in_headless_chromium(tmp_path):
     comp = make_two_ball_comp(tmp_path)
     port = _free_port()
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    log = open(tmp_path / "view.log", "w")          # a file: a full pipe would block it
     proc = subprocess.Popen([sys.executable, "-m", "comgs_dr.cli", "view", str(comp), "--port",
                              str(port), "--res", "48", "--rays", "4", "--quiet",
                              "--mitsuba-variant", "llvm_ad_rgb"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+                            stdout=log, stderr=subprocess.STDOUT, text=True, env=env)
     try:
-        line, deadline = "", time.time() + 180
-        while "comgs view: http" not in line:
-            line = proc.stdout.readline()
-            assert line or proc.poll() is None, "comgs view exited before serving"
+        deadline = time.time() + 180
+        while f"comgs view: http://localhost:{port}" not in (tmp_path / "view.log").read_text():
+            assert proc.poll() is None, "comgs view exited: " + (tmp_path / "view.log").read_text()
             assert time.time() < deadline, "comgs view did not start"
+            time.sleep(0.2)
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
             page = browser.new_page(viewport={"width": 1000, "height": 700})
             page.goto(f"http://127.0.0.1:{port}/")
             # the first composite from this viewer's camera (set by the server on connect)
-            _wait_status(page, "viewer connected")
+            _wait_status(page, r"^frame \d+ \((viewer connected|camera)")
             page.wait_for_selector("img[src^='blob:']")
             before = _shown_image(page)
             assert before.shape == (48, 48, 3) and before.std() > 1
@@ -95,8 +97,8 @@ def test_view_in_headless_chromium(tmp_path):
             y.fill(f"{A0[1] + DY:.3f}")
             y.press("Enter")
             page.get_by_role("button", name="apply move of a").click()
-            status = _wait_status(page, "moved")
-            assert "from release" in status
+            status = _wait_status(page, r"^last move .*: a moved")
+            assert "from release" in status, status
             page.wait_for_timeout(500)
             after = _shown_image(page)
             page.get_by_role("button", name="save placement").click()
@@ -108,6 +110,7 @@ def test_view_in_headless_chromium(tmp_path):
             proc.wait(30)
         except subprocess.TimeoutExpired:
             proc.kill()
+        log.close()
     # transform.json: a moved by DY along y (dataset frame = world here), b where it was
     t = json.loads((comp / "transform.json").read_text())
     W = np.asarray(json.loads((comp / "composition.json").read_text())["world_from_source"])

@@ -16,7 +16,7 @@ SPELLINGS = {
     "res": Spelling(metavar="N", help="size of the composite shown after each move, N×N px, "
                     "from the viewer's camera (its vertical field of view)"),
     "full_res": Spelling(metavar="N", help="size of 'render full size', N×N px (None: the "
-                         "capture's width)"),
+                         "capture's width, at least --res)"),
     "variant": Spelling(choices=VARIANTS, help="composite shown first (the GUI switches it)"),
     "rays": Spelling(metavar="N", help="rays per pixel of the preview composite (None: the "
                      "integrator's 256)"),

@@ -94,6 +94,7 @@ class ViewerApp:
         self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "log.jsonl").write_text("")
         self.frames = 0
+        self.last_move = ""          # the status's second line: the last move and its time
         self.server = viser.ViserServer(host=self.cfg.host, port=self.cfg.port, verbose=False)
         self.port = self.server.get_port()
         self.server.scene.set_up_direction("+z")
@@ -157,7 +158,8 @@ class ViewerApp:
             self.positions[n] = pos
 
     def _set_status(self, text: str) -> None:
-        self.status.content = text
+        """The status: ``text``, then the last move's line (kept until the next move)."""
+        self.status.content = text + (f"\n\n{self.last_move}" if self.last_move else "")
 
     def _error(self, e: BaseException) -> None:
         self._set_status(f"**error**: {type(e).__name__}: {e}")
@@ -236,7 +238,9 @@ class ViewerApp:
         self._render(client, f"moved {name}", t0, edit=e)
 
     def _render_when_rested(self, client) -> None:
-        while time.time() - client.camera.update_timestamp < CAMERA_SETTLE_S:
+        end = time.time() + 10 * CAMERA_SETTLE_S          # a camera that never rests: render
+        while time.time() - client.camera.update_timestamp < CAMERA_SETTLE_S and \
+                time.time() < end:
             time.sleep(0.05)
         self._render(client, "camera", time.perf_counter())
 
@@ -256,16 +260,17 @@ class ViewerApp:
         if edit is not None:
             rec.update(edit_s=edit["seconds"], lighting_s=edit["lighting"],
                        traced=edit["traced"], reused=edit["reused"], culled=edit["culled"])
-            text = (f"frame {self.frames}: **{edit['name']}** moved, edit {edit['seconds']:.2f} s "
-                    f"(lighting {edit['lighting']:.2f} s; pairs traced {len(edit['traced'])}, "
-                    f"reused {len(edit['reused'])}) + render {t_render:.2f} s = "
-                    f"**{total:.2f} s** from release")
+            self.last_move = (f"last move (frame {self.frames}): **{edit['name']}** moved, edit "
+                              f"{edit['seconds']:.2f} s (lighting {edit['lighting']:.2f} s; "
+                              f"pairs traced {len(edit['traced'])}, reused "
+                              f"{len(edit['reused'])}) + render {t_render:.2f} s = "
+                              f"**{total:.2f} s** from release")
         self._set_status(text)
         self._log(rec)
 
     def _render_full(self, client) -> None:
         t = time.perf_counter()
-        width = self.cfg.full_res or self.session.home_camera()["width"]
+        width = self.cfg.full_res or max(self.session.home_camera()["width"], self.cfg.res)
         cam = self.camera(client, width)
         variant = self.variant.value
         img = self.session.render(cam, variant, rays=self.cfg.full_rays)

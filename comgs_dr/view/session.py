@@ -52,8 +52,8 @@ class ViewConfig:
     host, port: where the viser server listens (port 0: a free one, printed).
     res: size (px a side) of the composite shown after each move, rendered from the
         viewer's camera with its vertical field of view (default 128).
-    full_res: size of "render full size" (None: the scene capture's first camera's width,
-        at the viewer's aspect).
+    full_res: size of "render full size", px a side (None: the scene capture's width, at
+        least ``res``).
     variant: composite shown first: sop, trace, noshadow or paste (a dropdown switches it).
     rays: the integrator's rays per pixel of the preview (default 16; None: its 256).
     full_rays: rays per pixel of "render full size" (None: the integrator's 256).
