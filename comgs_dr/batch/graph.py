@@ -226,7 +226,9 @@ def render_sharded(comp_dir, render: Render, address: str | None = None,
                    work=None, task_cpus: int = 1) -> dict:
     """``comgs render-comp --ray``: ``render`` in ``render.shards`` tasks (None: one per CPU
     of the cluster, at most one per frame) and a merge; returns the merge's summary (plus
-    ``shards``, ``attempts``, ``lost``). ``work`` None: ``COMP_DIR/.batch``."""
+    ``shards``, ``attempts`` {task: attempts started}, ``lost``, ``partial_files``,
+    ``frames_rendered_twice``, ``resumed_frames``: frames a retried shard found finished by
+    its killed attempt). ``work`` None: ``COMP_DIR/.batch``."""
     import ray
     comp_dir = Path(comp_dir).resolve()             # workers may run elsewhere
     render = _absolute(render)
@@ -243,6 +245,7 @@ def render_sharded(comp_dir, render: Render, address: str | None = None,
         keys = dict(sub)
         try:
             s = ray.get(merge)
+            parts = ray.get([r for k, r in sub if k != f"{label}.merge"])
         except Exception as e:                  # noqa: BLE001
             cause = getattr(e, "cause", None)
             if isinstance(cause, BaseException):
@@ -254,7 +257,8 @@ def render_sharded(comp_dir, render: Render, address: str | None = None,
     tries = attempts(work)
     s.update(shards=render.shards, attempts={k: tries.get(k, 0) for k in keys},
              **{k: v for k, v in _render_check(s).items() if k in ("lost", "partial_files")},
-             frames_rendered_twice=_twice(work))
+             frames_rendered_twice=_twice(work),
+             resumed_frames=sum(r["skipped"] for r in parts))
     return s
 
 
