@@ -35,6 +35,7 @@ from comgs_dr.surfels.params import (
 from comgs_dr.surfels.scene import gbuffer_scene
 from comgs_dr.train import background as bgenv
 from comgs_dr.train import checkpoint as ck
+from comgs_dr.train import exposure as ex
 from comgs_dr.train.init import initial_surfels  # noqa: F401 (part of this stage's API)
 from comgs_dr.train import losses as L
 from comgs_dr.train.density import DensityConfig
@@ -74,6 +75,16 @@ class RadianceConfig:
       (:class:`comgs_dr.train.strategy.DefaultStrategy`) clones/splits with ``densify``
       (DensityConfig fields, {} for its 2DGS defaults). With every surfel on a ray composited,
       clone/split adds surfels without improving the fit, so it is off by default.
+    * ``init_sweep_points`` (scene preset, None: 4000 when the points are sparse): SfM
+      leaves low-texture surfaces of real photos (walls, bedding, furniture) nearly empty;
+      surfels grown from its sparse points alone cover ~40 % of a phone photo and the rest
+      falls to the blurry far-field background (20-photo phone capture: 17.9 dB on the
+      training views, 17.8 dB held out). Plane-swept points (the ``nearfar`` init, with
+      each view's near/far from the SfM points it sees) fill them: 23 dB held out
+      (docs/real_capture.md). 2DGS clone/split does not (its opacity reset costs more than
+      its few splits add: 12 dB).
+    * ``exposure`` off by default: a per-view affine colour map for photos whose exposure
+      and white balance vary (train.exposure).
     * ``max_scale_frac`` (largest σ / extent; None: the preset's): without a cap a few object
       surfels grow to a large fraction of the object and haze the fit, and a scene grows hazy
       floaters.
@@ -88,6 +99,11 @@ class RadianceConfig:
     init_points: int = 20_000
     init: str = "auto"                    # auto | hull | points | nearfar | random | <path.ply>
     init_normals: bool = False            # surfels tangent to the initial points (PCA)
+    # init "points": the dataset's points + this many plane-swept ones (train.init.
+    # sweep_fill_points, per-view near/far from the SfM points each view sees); None: the
+    # scene preset adds train.init.SWEEP_FILL (4000, at most up to init_points) to points
+    # sparser than train.init.SWEEP_SPARSE_PER_PIXEL (real photos' SfM), object 0
+    init_sweep_points: int | None = None
     init_opacity: float = 0.5             # hull/points init
     lambda_ssim: float = 0.2
     lambda_d2n: float = 0.2
@@ -123,6 +139,12 @@ class RadianceConfig:
     time_limit_s: float | None = None     # stop early (after a checkpoint) when exceeded
     restore_best: bool = True             # end on the best evaluated state if the final one
                                           # fell > 0.5 dB below it (reported as ``diverged``)
+    # per-view exposure / white balance (train.exposure): a learnt affine colour map of each
+    # training view's render, re-centred to the views' mean; held-out views are rendered
+    # without one (psnr_test) and also colour-corrected (psnr_test_exposure)
+    exposure: bool = False
+    lr_exposure: float = 0.01             # decays exponentially to lr_exposure_final
+    lr_exposure_final: float = 1e-3
 
     def __post_init__(self):
         if self.preset not in PRESETS:
@@ -145,6 +167,11 @@ class RadianceConfig:
             self.max_scale_frac = PRESETS[self.preset]["max_scale_frac"]
         if not 0 < self.max_scale_frac <= 1.0:
             raise ValueError("RadianceConfig.max_scale_frac must be in (0, 1]")
+        if not (self.lr_exposure > 0 and self.lr_exposure_final > 0):
+            raise ValueError(f"RadianceConfig.lr_exposure and lr_exposure_final must be > 0, got "
+                             f"{self.lr_exposure}, {self.lr_exposure_final}")
+        if self.init_sweep_points is not None and self.init_sweep_points < 0:
+            raise ValueError("RadianceConfig.init_sweep_points must be >= 0 or None")
 
     @classmethod
     def from_preset(cls, name: str, **overrides) -> "RadianceConfig":
@@ -269,6 +296,15 @@ class Trainer(TrainerBase):
                       for v in self.views]
         self._rays = {}
         self.loss_fn = cfg.loss()
+        self.exposure = ex.ViewExposure(len(self.views), cfg.lr_exposure) if cfg.exposure else None
+        if self.exposure is not None and not self.env and cfg.random_background \
+                and all(m is not None for m in self.masks):
+            log.warning("reconstruct: exposure=True with a random background behind views with "
+                        "alpha: the correction applies to the whole composite, whose random "
+                        "grey the photo did not take; it is meant for opaque photos "
+                        "(set random_background=False or exposure=False)")
+        if self.exposure is not None and resumed is not None and "exposure" in arrays:
+            self.exposure.load(arrays["exposure"])
 
     # ------------------------------------------------------------- params
     def _install(self, params: SurfelParams):
@@ -311,6 +347,10 @@ class Trainer(TrainerBase):
         t = self.run_fraction()
         return float(self.extent * log_lerp(c.lr_means, c.lr_means_final, t))
 
+    def _lr_exposure(self) -> float:
+        c = self.cfg
+        return float(log_lerp(c.lr_exposure, c.lr_exposure_final, self.run_fraction()))
+
     def _lr_env(self) -> float:
         c, t = self.cfg, self.run_fraction()
         if c.lr_env_final is None:
@@ -332,6 +372,8 @@ class Trainer(TrainerBase):
         """(total, logged parts, buffers) of :class:`Step1Loss` for training view ``i``
         rendered over the grey level ``background`` (None: the dataset's)."""
         parts = self.integ.split(img)
+        if self.exposure is not None:           # this view's exposure / white balance
+            parts["color"] = self.exposure.apply(parts["color"], i)
         lf = self.loss_fn
         rays = self._view_rays(i) if lf.d2n_active(self.iteration) else None
         total, logged = lf(parts, self._target(i, background), self.masks[i], rays, self.iteration)
@@ -370,6 +412,8 @@ class Trainer(TrainerBase):
             self._resize(_with_sh_degree(self.params(), self.params().sh_degree + 1), remap=None)
         i = int(self.rng.integers(len(self.views)))
         bg = self._step_background()
+        if self.exposure is not None:
+            self.exposure.zero_grad()
         self.integ.background = self.background if bg is None else bg   # render + adjoint
         try:
             img = mi.render(self.scene, self.mp, sensor=i, seed=it)
@@ -392,6 +436,8 @@ class Trainer(TrainerBase):
         self.opt.set_learning_rate({key: self._lr_means()})
         self.opt.step()
         self._clamp()
+        if self.exposure is not None:
+            nan_grads += self.exposure.step(self._lr_exposure())
         if self.env:
             self.env_opt.set_learning_rate({bgenv.KEY: self._lr_env()})
             self.env_opt.step()
@@ -405,6 +451,8 @@ class Trainer(TrainerBase):
         stats["psnr_train"] = psnr(c_img, np.asarray(self._target(i, bg)))
         stats["nan_grads"] = nan_grads
         stats.update(hit_stats)
+        if self.exposure is not None:
+            stats.update(self.exposure.stats())
         edits = self.strategy.step_post_update(self.params(), self.opt, PARAM_KEYS,
                                                self.iteration, self.run_fraction(), self.rng)
         if edits.params is not None:
@@ -469,23 +517,35 @@ class Trainer(TrainerBase):
         dr.eval()
 
     # ---------------------------------------------------------------- eval
-    def _mean_psnr(self, views, offset: int, max_views: int | None) -> tuple[float, int]:
+    def _mean_psnr(self, views, offset: int, max_views: int | None,
+                   fit: bool = False) -> tuple[float, int, float | None]:
+        """Mean PSNR over (up to ``max_views`` of) ``views`` at sensors ``offset + j``:
+        training views (offset 0) through their exposure correction; ``fit``: also the
+        mean PSNR with a per-image affine colour fit (:func:`train.exposure.psnr_exposure_fit`)."""
         idx = np.unique(np.linspace(0, len(views) - 1, min(len(views), max_views or len(views)))
                         .round().astype(int))
-        ps = []
+        ps, pf = [], []
         for j in idx:
             img = mi.render(self.scene, sensor=offset + int(j))
-            ps.append(psnr(np.asarray(self.integ.split(img)["color"]), views[j].image))
-        return float(np.mean(ps)), len(ps)
+            c = np.asarray(self.integ.split(img)["color"])
+            if fit:
+                pf.append(ex.psnr_exposure_fit(np.clip(c, 0, 1), views[j].image))
+            if self.exposure is not None and offset == 0:
+                c = self.exposure.apply_numpy(c, int(j))
+            ps.append(psnr(c, views[j].image))
+        return float(np.mean(ps)), len(ps), (float(np.mean(pf)) if fit else None)
 
     def evaluate(self, max_views: int | None = None) -> dict:
-        """Test PSNR, and ``psnr_select``: the PSNR of a fixed subset of training views,
-        which alone chooses the best state (the test views never do)."""
+        """Test PSNR (held-out views as rendered, no exposure correction), ``psnr_test_exposure``
+        (after a per-image affine colour fit, :func:`train.exposure.psnr_exposure_fit`), and
+        ``psnr_select``: the PSNR of a fixed subset of training views (through their learnt
+        exposure correction, when on), which alone chooses the best state (the test views
+        never do)."""
         views = self.data.test or self.data.train
         off = len(self.views) if self.data.test else 0
-        p_test, n = self._mean_psnr(views, off, max_views)
-        p_sel, _ = self._mean_psnr(self.views, 0, max_views)
-        out = {"psnr_test": p_test, "views": n, "psnr_select": p_sel}
+        p_test, n, p_fit = self._mean_psnr(views, off, max_views, fit=True)
+        p_sel, _, _ = self._mean_psnr(self.views, 0, max_views)
+        out = {"psnr_test": p_test, "psnr_test_exposure": p_fit, "views": n, "psnr_select": p_sel}
         if self.loss_fn.d2n_active(self.iteration):
             out["d2n_grad_share"] = self.d2n_grad_share()
         return out
@@ -512,6 +572,8 @@ class Trainer(TrainerBase):
             norms.append(float(np.linalg.norm(np.nan_to_num(g))))
             for key in self.opt.keys():
                 dr.set_grad(self.opt[key], 0)
+            if self.exposure is not None:
+                self.exposure.zero_grad()
         return norms[0] / max(norms[1], 1e-30)
 
     def snapshot(self) -> dict:
@@ -520,6 +582,8 @@ class Trainer(TrainerBase):
         snap = self.params().to_numpy()
         if self.env:
             snap["env"] = np.array(self.mp[bgenv.KEY])
+        if self.exposure is not None:
+            snap["exposure"] = self.exposure.values()
         return snap
 
     def restore(self, state: dict) -> None:
@@ -527,6 +591,9 @@ class Trainer(TrainerBase):
         state = dict(state)
         if self.env:
             self.mp[bgenv.KEY] = to_jit(mi.TensorXf, state.pop("env"))
+        exposure = state.pop("exposure", None)
+        if self.exposure is not None and exposure is not None:
+            self.exposure.load(exposure)
         self._install(SurfelParams.from_numpy(**state))
         for key in PARAM_KEYS.values():
             self.opt[key] = self.mp[key]
@@ -608,4 +675,8 @@ def train_radiance(data, run_dir, cfg: RadianceConfig, progress: bool = True) ->
                "init": tr.init_desc, "background": tr.background_reason,
                "stopped_early": stopped_early, "diverged": diverged, **final,
                "config": dataclasses.asdict(cfg)}
+    if tr.exposure is not None:     # per training view: (I + D | b), the learnt colour map
+        ident = np.c_[np.eye(3), np.zeros(3)]
+        summary["exposure"] = {v.name: np.round(ident + tr.exposure.matrix(j), 5).tolist()
+                               for j, v in enumerate(tr.views)}
     return finish(tr, run_dir, summary, stage="reconstruct")
