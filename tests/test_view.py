@@ -180,3 +180,45 @@ def test_viewer_app_moves_an_object_on_gizmo_release(comp, tmp_path):
         assert list((c / "view").glob("full_*.png"))
     finally:
         app.stop()
+
+
+def test_move_estimates_the_light_of_the_moved_object_only(tmp_path):
+    """A composition whose light was estimated: a move estimates the moved object's light
+    at its new centre (``estimate_light``, its files in env/<name>_estimate/) and keeps
+    the other's map byte for byte."""
+    from test_composite import _nerf_folder, _probes_for, ball, plane
+
+    from comgs_dr.core.similarity import Similarity, write_placements
+    from comgs_dr.sops import occlusion as occ
+    from comgs_dr.stages.compose import ComposeConfig, compose
+    from comgs_dr.surfels.io import save_ply
+    from comgs_dr.train.run import write_run_info
+    data = _nerf_folder(tmp_path / "data", res=16)
+    run = tmp_path / "scene_run"
+    write_run_info(run, data, "scene", 1, False)
+    save_ply(plane(n=24), str(run / "point_cloud.ply"))
+    p = ball((0, 0, 0), 0.25, (0.8, 0.2, 0.2), n=300)
+    (tmp_path / "o").mkdir()
+    save_ply(p, str(tmp_path / "o" / "point_cloud.ply"))
+    _probes_for(p, count=30).save(tmp_path / "o" / "probes.npz")
+    write_placements(tmp_path / "t.json", {"a": Similarity(1.0, np.eye(3), A0),
+                                           "b": Similarity(1.0, np.eye(3), B0)})
+    sky = lambda pos, name: np.full((16, 32, 3), 0.5)                       # noqa: E731
+    cfg = ComposeConfig(shadow=occ.ShadowConfig(count=30, res=8, supersample=1),
+                        scene_views=4, min_consistent=1, env_res=32)
+    c = tmp_path / "comp"
+    compose(run, {"a": tmp_path / "o", "b": tmp_path / "o"}, tmp_path / "t.json", c,
+            estimator=sky, cfg=cfg, progress=False)
+    env_a, env_b = (c / "env" / "a.exr").read_bytes(), (c / "env" / "b.exr").read_bytes()
+    s = ViewSession(c, ViewConfig(pano=32, label="outdoor"))
+    assert s.env is None
+    m = s.world["a"].matrix.copy()
+    m[:3, 3] += [0.0, 0.4, 0.0]
+    e = s.move("a", m)
+    assert e["lighting"] > 0
+    assert (c / "env" / "b.exr").read_bytes() == env_b
+    assert (c / "env" / "a.exr").read_bytes() != env_a
+    assert (c / "env" / "a_estimate" / "a.json").is_file()
+    assert not (c / "env" / "b_estimate").exists()
+    at = json.loads((c / "composition.json").read_text())["lighting"]["estimated_at"]
+    assert np.allclose(at["a"], A0 + [0, 0.4, 0], atol=0.05)

@@ -234,7 +234,14 @@ class ViewerApp:
 
     def _move(self, name: str, matrix, t0: float, client) -> None:
         self._set_status(f"re-running the edit for **{name}** ...")
-        e = self.session.move(name, matrix)
+        try:
+            e = self.session.move(name, matrix)
+        except BaseException:                    # the gizmo goes back to where the object is
+            sim = self.session.world[name]
+            self.gizmos[name].position = tuple(sim.translation)
+            self.gizmos[name].wxyz = tuple(rotation_wxyz(sim.rotation))
+            self.positions[name].value = tuple(float(v) for v in sim.translation)
+            raise
         self._render(client, f"moved {name}", t0, edit=e)
 
     def _render_when_rested(self, client) -> None:
