@@ -249,7 +249,9 @@ def test_batch_runs_the_graph_and_a_bad_job_fails_alone(tiny, ray_local, capsys)
     doc["jobs"] += [dict(good, name="noplace", placement="missing.json", out="c2"),
                     dict(good, name="nobject", objects={"a": "broken"}, out="c3"),
                     dict(good, name="again", objects={"a": "broken"}, out="c4",
-                         placement="t2.json")]
+                         placement="t2.json"),
+                    {"name": "old", "comp": str(_fresh_comp(tiny, "old")),     # render only
+                     "render": {"path": "orbit", "frames": 3, "rays": RAYS, "shards": 2}}]
     path = tiny / "jobs.yaml"
     path.write_text(yaml.safe_dump(doc))
     assert main(["batch", str(path), "--quiet"]) == 1
@@ -257,9 +259,11 @@ def test_batch_runs_the_graph_and_a_bad_job_fails_alone(tiny, ray_local, capsys)
     assert "j: ok" in out and "noplace: FAILED in job-noplace.compose: FileNotFoundError" in out
     assert "nobject: FAILED in object-broken.reconstruct" in out
     s = json.loads((tiny / "jobs.batch" / "summary.json").read_text())
-    assert (s["jobs_ok"], s["jobs_failed"]) == (1, 3)
+    assert (s["jobs_ok"], s["jobs_failed"]) == (2, 3)
     assert sum(k.endswith(".reconstruct") for k in s["attempts"]) == 1   # once, 2 jobs
-    assert s["retried_tasks"] == 0 and s["frames"] == 4 and s["frames_lost"] == 0
+    assert s["retried_tasks"] == 0 and s["frames"] == 7 and s["frames_lost"] == 0
+    assert len(_pngs(tiny / "old" / "renders" / "sop")) == 3
+    assert json.loads((tiny / "old" / "path_sop.json").read_text())["frames"] == 3
     assert "no_such_dataset" in {j["name"]: j for j in s["jobs"]}["again"]["error"]
     assert len(_pngs(tiny / "c" / "renders" / "sop")) == 4
     assert (tiny / "c" / "composition.json").is_file() and not (tiny / "c2").exists()

@@ -36,6 +36,9 @@ def init_ray(address: str | None = None, num_cpus: int | None = None) -> bool:
         return False
     if address in (None, "local"):
         ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=True)
+    elif num_cpus is not None:
+        raise ValueError(f"--num-cpus sizes a local Ray instance; the cluster at {address} "
+                         f"has its own (`ray start --num-cpus`)")
     else:
         ray.init(address=address, log_to_driver=True)
     return True
