@@ -168,9 +168,9 @@ def render_comp(comp_dir, cameras=None, variant: str = "sop", gt_dir=None,
     :class:`RenderCompConfig`.
 
     Sharding (``comgs_dr.batch``): ``frame_indices`` (a list, or a slice such as
-    ``slice(k, None, n)``) renders only those frames (frame i
-    still with ``seed + i``) and returns {"per_frame": their records, ...} without writing
-    the metrics, path summary, video or ``render_<variant>.metrics.jsonl``; ``done``
+    ``slice(k, None, n)``) renders only those frames (frame i still with ``seed + i``) and
+    returns {"per_frame": their records, ...} without writing the metrics, path summary,
+    video or ``render_<variant>.metrics.jsonl``; ``done``
     ({frame name: its record}) skips the frames whose PNG is already there and takes their
     records as given (the scene is not loaded when nothing is left to render);
     ``on_frame(i, record)`` is called once frame i's PNG is in place."""
@@ -333,10 +333,10 @@ def _render_frames(load_scene, cams: list, comp_dir: Path, out_dir: Path, varian
                    gts: dict, regions: dict, seed: int, progress: bool, clip: dict | None = None,
                    indices=None, done: dict | None = None, on_frame=None) -> list[dict]:
     """Render every camera (frame i with ``seed + i``, its own pose and intrinsics) into
-    ``out_dir``, or those of ``indices`` (a list or a slice); per frame a record (name, seconds, scores), each
-    also appended to ``render_<variant>.metrics.jsonl`` (not for ``indices``). A frame of
-    ``done`` whose PNG is there keeps its record; ``load_scene()`` is called at the first
-    frame to render."""
+    ``out_dir``, or those of ``indices`` (a list or a slice); per frame a record (name,
+    seconds, scores), each also appended to ``render_<variant>.metrics.jsonl`` (not for
+    ``indices``). A frame of ``done`` whose PNG is there keeps its record; ``load_scene()``
+    is called at the first frame to render."""
     scene = sensor = params = perspective = None
     frames = []
     size = (cams[0]["width"], cams[0]["height"])
@@ -345,8 +345,7 @@ def _render_frames(load_scene, cams: list, comp_dir: Path, out_dir: Path, varian
         runlog.rewrite(comp_dir, [], name=jsonl)
     todo = range(len(cams)) if indices is None else range(len(cams))[indices] \
         if isinstance(indices, slice) else [int(j) for j in indices]
-    for i in tqdm(todo,
-                  desc=f"render-comp {variant}", unit="frame", disable=not progress):
+    for i in tqdm(todo, desc=f"render-comp {variant}", unit="frame", disable=not progress):
         c = cams[i]
         if (c["width"], c["height"]) != size:
             raise ValueError(f"render-comp: frame {c['name']} is {c['width']}×{c['height']}, "
