@@ -31,7 +31,11 @@ def init_ray(address: str | None = None, num_cpus: int | None = None) -> bool:
     """Connect to the Ray cluster at ``address`` ("auto": the one ``ray start`` made here),
     or start a local instance (``address`` None or "local"; ``num_cpus`` None: every core).
     Returns whether this call started or connected (and so should shut down)."""
-    import ray
+    try:
+        import ray
+    except ImportError:
+        raise ImportError("comgs batch and --ray need Ray: pip install -e .[cpu] "
+                          "(ray==2.60.0)") from None
     if ray.is_initialized():
         return False
     if address in (None, "local"):
