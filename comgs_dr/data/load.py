@@ -41,7 +41,7 @@ from comgs_dr.data.types import (
     compute_bounds,
 )
 
-__all__ = ["Camera", "View", "SceneData", "DatasetError", "load_dataset",
+__all__ = ["Camera", "View", "SceneData", "DatasetError", "load_dataset", "camera_fingerprint",
            "load_nerf_synthetic", "load_colmap", "load_llff", "detect_format",
            "compute_bounds", "MITSUBA_FROM_OPENGL", "MITSUBA_FROM_OPENCV", "MITSUBA_FROM_LLFF"]
 
@@ -78,3 +78,26 @@ def load_dataset(path, format: str = "auto", **kw) -> SceneData:
         raise ValueError(f"load_dataset: format must be 'auto' or one of "
                          f"{', '.join(_LOADERS)}, got {format!r}")
     return _LOADERS[fmt](root, **kw)
+
+
+_CAMERA_FILES = ("transforms_*.json", "sparse/cameras.*", "sparse/images.*",
+                 "sparse/0/cameras.*", "sparse/0/images.*", "poses_bounds.npy")
+
+
+def camera_fingerprint(path) -> str | None:
+    """SHA-256 of a dataset folder's camera files (transforms files, the COLMAP model's
+    cameras/images, ``poses_bounds.npy``: their names and bytes), or None when the folder
+    holds none. A run records it: re-running SfM into the dataset's folder moves every
+    camera to a new frame, and a run trained on the old one would render misplaced."""
+    import hashlib
+    root = Path(path)
+    if root.is_file():
+        root = root.parent
+    files = sorted({f for pat in _CAMERA_FILES for f in root.glob(pat) if f.is_file()})
+    if not files:
+        return None
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.relative_to(root).as_posix().encode() + b"\0")
+        h.update(f.read_bytes())
+    return h.hexdigest()

@@ -58,7 +58,7 @@ from comgs_dr.surfels.io import load_ply, quat_to_matrix, save_ply
 from comgs_dr.surfels.kernel import SH_C0
 from comgs_dr.surfels.params import SurfelParams
 from comgs_dr.train.checkpoint import atomic_write_text
-from comgs_dr.train.run import read_run_info, write_run_info
+from comgs_dr.train.run import check_run_cameras, read_run_info, write_run_info
 
 CutError = C.CutError
 PLANE_POINTS = ("surfels", "sfm")
@@ -198,6 +198,8 @@ def load_source(run_dir, data_dir=None) -> Source:
                                 "`comgs reconstruct`)")
     params, meta = load_ply(ply, return_meta=True)
     d = params.to_numpy()
+    if data_dir is None:
+        check_run_cameras(run_dir, info)
     data_dir = Path(data_dir if data_dir is not None else info["data"])
     data = load_dataset(data_dir, pixels=False)
     normals = quat_to_matrix(d["quats"])[:, :, 2]

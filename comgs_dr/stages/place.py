@@ -55,7 +55,7 @@ from comgs_dr.sops.occlusion import plane_normals
 from comgs_dr.surfels import raycast
 from comgs_dr.surfels.io import load_ply
 from comgs_dr.surfels.params import SurfelParams, object_bounds
-from comgs_dr.train.run import read_run_info
+from comgs_dr.train.run import check_run_cameras, read_run_info
 
 log = logging.getLogger(__name__)
 
@@ -404,6 +404,7 @@ def place(scene_run, name: str, object_run, out, *, view=None, pixel=None, at=No
     scene_params = load_ply(ply)
     oply = object_ply(object_run)
     obj_params = load_ply(oply)
+    check_run_cameras(scene_run, info)
     data = load_dataset(info["data"], pixels=False)             # full-resolution cameras
     lap("load")
     trace = raycast.trace_scene(scene_params)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from comgs_dr.data.load import load_dataset
+from comgs_dr.data.load import DatasetError, camera_fingerprint, load_dataset
 from comgs_dr.train.checkpoint import atomic_write_text
 
 RUN_FILE = "run.json"
@@ -14,10 +14,13 @@ RUN_FILE = "run.json"
 
 def write_run_info(run_dir: Path, data_dir, preset: str, resolution_scale: int,
                    white_background: bool) -> None:
+    """``run_dir/run.json``: the dataset (and its cameras' :func:`camera_fingerprint`, so that a
+    dataset changed after training is refused, not silently misplaced), preset, scale."""
     Path(run_dir).mkdir(parents=True, exist_ok=True)
     atomic_write_text(Path(run_dir) / RUN_FILE, json.dumps({
         "data": str(Path(data_dir).resolve()), "preset": preset,
-        "resolution_scale": resolution_scale, "white_background": white_background}, indent=1))
+        "resolution_scale": resolution_scale, "white_background": white_background,
+        "cameras_sha256": camera_fingerprint(data_dir)}, indent=1))
 
 
 _FIELDS = {"data": str, "preset": str, "resolution_scale": int, "white_background": bool}
@@ -50,8 +53,24 @@ def load_run_dataset(run_dir: Path, info: dict | None = None, pixels: bool = Tru
     """The dataset of a run, loaded as step 1 loaded it (background, resolution scale);
     ``pixels`` False: its cameras only (``images.load_view``)."""
     info = info or read_run_info(run_dir)
+    check_run_cameras(run_dir, info)
     return load_dataset(info["data"], white_background=info["white_background"],
                         resolution_scale=info["resolution_scale"], pixels=pixels)
+
+
+def check_run_cameras(run_dir: Path, info: dict) -> None:
+    """DatasetError when the run's dataset's camera files changed since the run was trained
+    (``run.json`` → ``cameras_sha256``; runs written before it was recorded pass)."""
+    want = info.get("cameras_sha256")
+    if not want or not Path(info["data"]).exists():
+        return
+    have = camera_fingerprint(info["data"])
+    if have != want:
+        raise DatasetError(
+            f"{Path(run_dir) / RUN_FILE}: the cameras of its dataset {info['data']} changed "
+            f"since this run was trained (a new `comgs sfm` into that folder?): the run's "
+            f"surfels are in the old cameras' frame and would render misplaced. Point 'data' "
+            f"at the dataset it was trained on, or re-run `comgs reconstruct`")
 
 
 def select_views(views: list, max_views: int | None) -> list:
