@@ -133,3 +133,14 @@ def test_points_near_far_and_sweep_fill(tiny_dataset):
     d = dataclasses.replace(data, points=pts, colors=None)
     out = sweep_fill_points(d, 64, rng, far_field=False)
     assert out is not None and out[0].shape == (64, 3) and np.isfinite(out[0]).all()
+
+
+def test_train_radiance_reports_the_exposure_maps(tiny_dataset, tmp_path):
+    from comgs_dr.stages.reconstruct import train_radiance
+    data = load_dataset(tiny_dataset)
+    s = train_radiance(data, tmp_path / "run", _cfg(iterations=6, eval_every=3, log_every=3,
+                                                    exposure=True), progress=False)
+    assert set(s["exposure"]) == {v.name for v in data.train}
+    m = np.array(next(iter(s["exposure"].values())))
+    assert m.shape == (3, 4) and np.isfinite(m).all()
+    assert np.isfinite(s["psnr_test_exposure"]) and s["config"]["exposure"] is True
