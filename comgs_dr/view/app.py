@@ -184,7 +184,6 @@ class ViewerApp:
             client.camera.position = p
             client.camera.look_at = p + fwd * max(dist, 1e-6)
             client.camera.fov = fov
-        self._settled = client.camera.update_timestamp
         client.camera.on_update(partial(self._on_camera, client))
         self.worker.submit("render", partial(self._render, client, "viewer connected", t0))
 
@@ -196,7 +195,9 @@ class ViewerApp:
     def _on_gizmo(self, name: str, event) -> None:
         """Drag: the GUI position follows; release: the move is queued."""
         g = self.gizmos[name]
-        if event.phase == "end":
+        if event.phase == "update":
+            self.positions[name].value = tuple(float(v) for v in g.position)
+        elif event.phase == "end":
             t0 = time.perf_counter()
             m = self._matrix(name, g.position, g.wxyz)
             self.positions[name].value = tuple(float(v) for v in g.position)
