@@ -74,7 +74,7 @@ def run_step1(data: Path, run: Path, variant: str, scale: int, iterations: int,
     log_path = run / "train_log.json"
     if not log_path.exists():
         _cli("reconstruct", data, "--out", run, "--scene", "-r", scale, "--iterations", iterations,
-             "--eval-views", 64, "--quiet", *VARIANTS[variant], *extra)
+             "--eval-views", 16, "--quiet", *VARIANTS[variant], *extra)
     log = json.loads(log_path.read_text())
     s = log["summary"]
     tests = [r["psnr_test"] for r in log["log"] if "psnr_test" in r] + [s["psnr_test"]]
