@@ -263,7 +263,7 @@ def normal_quaternions(normals) -> np.ndarray:
 #: ``RadianceConfig.init_sweep_points=None``: plane-swept points added to a scene's sparse
 #: SfM points (at most up to ``init_points``). On a 20-photo phone capture (1485 SfM points,
 #: 250 px) 4000 took the held-out PSNR from 17.8 to about 23 dB at ~5x the cost per
-#: iteration; 18500 fitted the training views better still at ~20x (docs/real_capture.md).
+#: iteration; 18500 fitted the training views no better at ~3x the cost of 4000.
 SWEEP_FILL = 4000
 #: ... only when the points are that sparse: fewer than this many per training pixel (SfM
 #: of real photos: 0.0005-0.003; synthetic scenes with their points3d.ply, whose sky a
