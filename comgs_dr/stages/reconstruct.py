@@ -102,7 +102,7 @@ class RadianceConfig:
     # init "points": the dataset's points + this many plane-swept ones (train.init.
     # sweep_fill_points, per-view near/far from the SfM points each view sees); None: the
     # scene preset adds train.init.SWEEP_FILL (4000, at most up to init_points) to points
-    # sparser than train.init.SWEEP_SPARSE_PER_PIXEL (real photos' SfM), object 0
+    # sparser than train.init.SWEEP_SPARSE_PER_PIXEL (0.005: real photos' SfM), object 0
     init_sweep_points: int | None = None
     init_opacity: float = 0.5             # hull/points init
     lambda_ssim: float = 0.2
