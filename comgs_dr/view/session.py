@@ -38,6 +38,7 @@ from comgs_dr.stages.estimate_light import EstimateConfig, estimate_light, write
 from comgs_dr.stages.render_comp import VARIANTS, load_comp_scene
 from comgs_dr.surfels.io import load_ply
 from comgs_dr.surfels.params import SurfelParams
+from comgs_dr.surfels.transform import quat_from_matrix
 from comgs_dr.surfels.shape import SurfelShapeBase
 from comgs_dr.surfels.transform import transform_surfels
 from comgs_dr.train.checkpoint import atomic_write_text
@@ -154,24 +155,8 @@ def camera_pose_cv(cam: dict) -> tuple[np.ndarray, np.ndarray, float]:
     return m[:3, 3].copy(), rotation_wxyz(r), float(2 * np.arctan(0.5 * cam["height"] / cam["fy"]))
 
 
-def rotation_wxyz(r) -> np.ndarray:
-    """The unit quaternion (w, x, y, z) of a rotation matrix."""
-    r = np.asarray(r, np.float64)
-    t = np.trace(r)
-    if t > 0:
-        s = 2 * np.sqrt(t + 1)
-        q = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
-    else:
-        i = int(np.argmax(np.diag(r)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2 * np.sqrt(1 + r[i, i] - r[j, j] - r[k, k])
-        q = [0.0] * 4
-        q[0] = (r[k, j] - r[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (r[j, i] + r[i, j]) / s
-        q[1 + k] = (r[k, i] + r[i, k]) / s
-    q = np.asarray(q)
-    return q / np.linalg.norm(q)
+#: The unit quaternion (w, x, y, z) of a rotation matrix: viser's convention is the surfels'.
+rotation_wxyz = quat_from_matrix
 
 
 def wxyz_rotation(q) -> np.ndarray:
