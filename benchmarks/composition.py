@@ -123,13 +123,14 @@ def main(argv=None):
               f"{1 / r['frame_seconds']:>8.2f}")
     if all("region" in rows[v] for v in VARIANTS):
         print(f"\nin the object+shadow region (eval.comp_region):\n{'variant':<10}{'PSNR':>8}"
-              f"{'shadow':>8}{'truth':>8}{'depth':>7}   object colour / truth")
+              f"{'shadow':>8}{'truth':>8}{'depth':>7}{'area':>7}   object colour / truth")
         for v in VARIANTS:
             g = rows[v]["region"]
             col = ", ".join(f"{c:.2f}" for c in g.get("object_colour_ratio", []))
             print(f"{v:<10}{g['psnr_region']:>8.2f}{g.get('shadow_ratio', float('nan')):>8.3f}"
                   f"{g.get('shadow_ratio_truth', float('nan')):>8.3f}"
-                  f"{g.get('shadow_depth', float('nan')):>7.2f}   {col}")
+                  f"{g.get('shadow_depth', float('nan')):>7.2f}"
+                  f"{g.get('shadow_depth_area', float('nan')):>7.2f}   {col}")
     print(f"trace / sop frame time: {rows['trace']['frame_seconds'] / rows['sop']['frame_seconds']:.2f}x;"
           f" sop - trace PSNR: {rows['sop']['psnr'] - rows['trace']['psnr']:+.2f} dB")
     t = edit["timings"]

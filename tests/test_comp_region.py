@@ -36,10 +36,30 @@ def test_region_scores_recover_known_darkness_and_colour():
     assert np.isfinite(s["psnr_region"])
     same = cr.summarise([cr.frame_scores(gt, gt, empty, obj)])
     assert same["psnr_region"] > 100 and same["shadow_depth"] == pytest.approx(1.0)
+    assert same["shadow_depth_area"] == pytest.approx(1.0)
     # no shadow, no object: nothing to report rather than a NaN
     none = cr.summarise([cr.frame_scores(srgb_encode(empty), srgb_encode(empty), empty,
                                          np.zeros(obj.shape, bool))])
     assert none == {"psnr_region": None}
+
+
+def test_area_depth_is_not_charged_with_the_scenes_blurred_texture():
+    """A textured empty scene; ours is the same scene blurred (a reconstruction) darkened by
+    exactly the truth's shadow: the per-pixel mean ratio reads the blur as a lighter
+    shadow, the area ratio does not."""
+    from scipy.ndimage import uniform_filter
+    empty, _, obj, shadow = _frame()
+    rng = np.random.default_rng(0)
+    tex = np.repeat(rng.uniform(0.05, 0.6, (48, 64, 1)), 3, -1)
+    blurred = uniform_filter(tex, size=(5, 5, 1))
+    gt, ours = tex.copy(), blurred.copy()
+    gt[shadow] *= 0.4
+    ours[shadow] *= 0.4
+    gt[obj] = ours[obj] = (0.5, 0.25, 0.1)
+    s = cr.summarise([cr.frame_scores(srgb_encode(ours), srgb_encode(gt), tex, obj)])
+    assert s["shadow_depth"] < 0.9                           # charged with the blur
+    assert s["shadow_depth_area"] == pytest.approx(1.0, abs=0.05)
+    assert s["shadow_ratio_truth_area"] == pytest.approx(0.4, abs=0.01)
 
 
 def test_figures_show_the_shadow_line_and_crops():

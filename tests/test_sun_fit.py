@@ -102,7 +102,7 @@ def test_add_sun_supplies_what_the_panorama_did_not_see():
     guessed[(dirs @ far) > np.cos(np.radians(5))] = 40.0               # a guessed sun elsewhere
     fit = sf.SunFit(SUN, 3.0, np.array([3.0, 3.0, 3.0]), 20.0, 5.0, 0.1, True, "", 100, 0.0)
     unseen = np.zeros((h, w), bool)
-    out, what = sf.add_sun(guessed, unseen, fit, radius_deg=2.0)
+    out, what = sf.add_sun(guessed, unseen, fit, radius_deg=2.0, unseen_sky="completion")
     assert what.startswith("added")
     assert out[(dirs @ far) > np.cos(np.radians(5))].max() == pytest.approx(0.5)
     e_up = sf.up_irradiance(sky)
@@ -118,6 +118,57 @@ def _unit(v):
     return v / np.linalg.norm(v)
 
 
+def test_the_unseen_sky_becomes_a_clear_sky_for_the_fitted_sun():
+    """The completion's warm guess of a sky nobody saw is replaced by a clear sky for the
+    sun (blue overhead, brightest toward the sun), at the guess's irradiance on the ground;
+    the observed pixels (here the lower hemisphere and one patch of sky) are kept."""
+    from comgs_dr.core.colorspace import LUMA
+    from comgs_dr.core.equirect import equirect_directions, solid_angle_image
+    h, w = 64, 128
+    dirs = equirect_directions(h, w)
+    guess = np.where(dirs[..., 2:3] > 0, [0.9, 0.6, 0.3], [0.2, 0.15, 0.1])   # warm
+    observed = dirs[..., 2] <= 0
+    patch = (dirs @ _unit(np.array([-1.0, 0.0, 0.3]))) > np.cos(np.radians(15))
+    observed |= patch
+    low = _unit(np.array([0.8, -0.58, 0.15]))                                 # 8.6° high
+    fit = sf.SunFit(low, 3.0, np.array([4.0, 3.0, 2.0]), 20.0, 5.0, 0.1, True, "", 100, 0.0)
+    sky_only, _ = sf.add_sun(guess, observed, fit, radius_deg=1e-3)
+    np.testing.assert_allclose(sky_only[observed], guess[observed], rtol=1e-6)
+    unseen = ~observed & (dirs[..., 2] > 0)
+    wgt = solid_angle_image(h, w) * np.maximum(dirs[..., 2], 0)
+    e_before = ((guess @ LUMA) * wgt)[unseen].sum()
+    near = (dirs @ low) > np.cos(np.radians(4.0))
+    e_after = ((sky_only @ LUMA) * wgt)[unseen & ~near].sum()
+    assert e_after <= e_before * 1.001
+    assert e_after >= e_before * 0.97                 # the sun's disk is the rest
+    zenith = sky_only[dirs[..., 2] > 0.95].mean(0)
+    assert zenith[2] > 1.2 * zenith[0]                  # blue overhead, not the guess's warm
+    sky = np.where(unseen & ~near, sky_only @ LUMA, 0)
+    top = dirs.reshape(-1, 3)[np.argmax(sky)]
+    assert np.degrees(np.arccos(top @ low)) < 25        # brightest toward the sun
+    kept, _ = sf.add_sun(guess, observed, fit, radius_deg=1e-3, unseen_sky="completion")
+    np.testing.assert_allclose(kept[unseen & ~near], guess[unseen & ~near], rtol=1e-6)
+    with pytest.raises(ValueError, match="unseen_sky"):
+        sf.add_sun(guess, observed, fit, unseen_sky="blue")
+
+
+def test_clear_sky_checks_and_horizon():
+    from comgs_dr.core.equirect import equirect_directions
+    from comgs_dr.lighting import clear_sky
+    dirs = equirect_directions(16, 32)
+    m = clear_sky.clear_sky([1.0, 0.0, -0.2], 16, 32)          # below the horizon: lifted
+    assert np.isfinite(m).all() and (m[dirs[..., 2] <= 0] == 0).all()
+    assert (m[dirs[..., 2] > 0.1] > 0).all()
+    for bad in ([0, 0, 0], [np.nan, 0, 1]):
+        with pytest.raises(ValueError, match="direction"):
+            clear_sky.clear_sky(bad, 8, 16)
+    with pytest.raises(ValueError, match="turbidity"):
+        clear_sky.clear_sky([0, 0, 1], 8, 16, turbidity=20)
+    flat = np.ones((16, 32, 3))
+    same, scale = clear_sky.fill_unseen_sky(flat, np.zeros((16, 32), bool), [0, 0, 1])
+    assert scale == 0.0 and (same == flat).all()
+
+
 def test_grid_and_config_checks():
     d = sf.fibonacci_hemisphere(200, 5.0)
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
@@ -129,6 +180,10 @@ def test_grid_and_config_checks():
         EstimateConfig(sun_from_shadows="maybe").validate()
     with pytest.raises(ValueError, match="sun_radius_deg"):
         EstimateConfig(sun_radius_deg=0.0).validate()
+    with pytest.raises(ValueError, match="unseen_sky"):
+        EstimateConfig(unseen_sky="blue").validate()
+    with pytest.raises(ValueError, match="sky_turbidity"):
+        EstimateConfig(sky_turbidity=0.5).validate()
     few = sf.fit_sun(np.zeros((10, 3)), np.tile([0, 0, 1.0], (10, 1)), np.ones((10, 3)),
                      lambda d: np.ones(10))
     assert not few.usable and "receivers" in few.reason

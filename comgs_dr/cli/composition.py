@@ -28,6 +28,10 @@ ESTIMATION_FLAGS = {
     "sun_from_shadows": Spelling(choices=("auto", "off"), help="auto: a sun the scene capture "
                                  "did not see is fitted to the scene's cast shadows "
                                  "(lighting.sun_fit); off: the panorama alone; not with --env"),
+    "unseen_sky": Spelling(choices=("clear", "completion"), help="when a sun is fitted to the "
+                           "shadows, the sky the capture did not see: clear (a clear sky for "
+                           "that sun, lighting.clear_sky) or the completion's guess; not with "
+                           "--env"),
     "weights": Spelling(metavar="W.pt", help="completion-net checkpoint of the estimation "
                         "(None: the shipped one; not with --env)"),
     "light_head": Spelling(metavar="HEAD.pt", help="light head of the estimation: a file, "

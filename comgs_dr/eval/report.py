@@ -174,14 +174,18 @@ def _demo_section(d: dict) -> str:
         first = next(iter(reg.values()))
         s += ["<h3>Where the object was inserted (the object + the truth's shadow)</h3>",
               _table(["variant", "PSNR in the region [dB]", "shadow: ours / empty",
-                      "truth / empty", "shadow depth vs truth", "object colour / truth (R, G, B)"],
+                      "truth / empty", "shadow depth vs truth", "depth over the area",
+                      "object colour / truth (R, G, B)"],
                      [[v, r.get("psnr_region"), r.get("shadow_ratio"),
                        r.get("shadow_ratio_truth"), r.get("shadow_depth"),
+                       r.get("shadow_depth_area"),
                        ", ".join(f"{c:.2f}" for c in r.get("object_colour_ratio", []))]
                       for v, r in reg.items()]),
               f"<p>Shadow pixels: the {first.get('shadow_pixels', 0)} pixels (pooled over "
               f"frames) where the truth is darker than 0.7 × its empty scene; depth "
-              f"(1 − ours) / (1 − truth): 1 is as dark as the truth. SOP better than the paste in the region on "
+              f"(1 − ours) / (1 − truth): 1 is as dark as the truth, from the per-pixel "
+              f"mean of render / empty, and over the area (Σ render / Σ empty; a "
+              f"reconstruction's blurred texture raises the per-pixel mean). SOP better than the paste in the region on "
               f"{d.get('sop_beats_paste_frames_region')}/{d.get('frames')} frames.</p>"]
     L = d.get("lighting")
     if L:

@@ -48,6 +48,7 @@ from scipy.spatial import cKDTree
 from comgs_dr.core.colorspace import srgb_decode
 from comgs_dr.core.equirect import equirect_directions, solid_angle_image
 from comgs_dr.core.hostarray import to_jit
+from comgs_dr.lighting import clear_sky
 from comgs_dr.sops.occlusion import plane_normals
 from comgs_dr.surfels.io import quat_to_matrix
 from comgs_dr.surfels.kernel import SH_C0
@@ -375,7 +376,8 @@ def up_irradiance(radiance_eq: np.ndarray) -> np.ndarray:
 
 
 def add_sun(radiance_eq: np.ndarray, observed: np.ndarray, fit: SunFit,
-            radius_deg: float = 1.0, replace_deg: float = 25.0):
+            radius_deg: float = 1.0, replace_deg: float = 25.0,
+            unseen_sky: str = "clear", turbidity: float = clear_sky.DEFAULT_TURBIDITY):
     """The panorama with the fitted sun: (new equirect [H, W, 3], what was done: str).
 
     The panorama keeps what it saw: if the sun's direction was observed (``observed``
@@ -384,8 +386,11 @@ def add_sun(radiance_eq: np.ndarray, observed: np.ndarray, fit: SunFit,
     than the unobserved sky's median are set to that median (a guessed sun elsewhere in
     the cone would double it), as are unobserved pixels anywhere above the horizon brighter
     than ``HOT_FACTOR`` × that median (a completion's guessed sun far from the one the shadows
-    show would cast a second shadow), and a disk of ``radius_deg`` is added whose irradiance on a
-    surface facing it is k_rgb × the map's E(up)."""
+    show would cast a second shadow). ``unseen_sky`` "clear" (default): the unobserved sky
+    then takes a clear sky's shape and colour for this sun at its own luminance
+    (``clear_sky.fill_unseen_sky``: the completion guesses the sky from the ground's colour);
+    "completion": it stays the completion's. Last a disk of ``radius_deg`` is added whose
+    irradiance on a surface facing it is k_rgb × the map's E(up)."""
     rad = np.array(radiance_eq, np.float64)
     h, w = rad.shape[:2]
     observed = _resize_mask(observed, h, w)
@@ -401,6 +406,14 @@ def add_sun(radiance_eq: np.ndarray, observed: np.ndarray, fit: SunFit,
     cone = (cosd >= np.cos(np.radians(replace_deg))) & unseen
     hot = (cone & (lum > ref)) | (unseen & (lum > HOT_FACTOR * ref))
     rad[hot] = sky
+    sky_note = ""
+    if unseen_sky == "clear":
+        rad, scale = clear_sky.fill_unseen_sky(rad, unseen, fit.direction, turbidity)
+        sky_note = (f", the unseen sky a clear sky (turbidity {turbidity:g}) at the "
+                    f"completion's luminance" if scale > 0 else "")
+    elif unseen_sky != "completion":
+        raise ValueError(f"add_sun: unseen_sky must be 'clear' or 'completion', got "
+                         f"{unseen_sky!r}")
     e_up = up_irradiance(rad)                        # the sky's, without a (guessed) sun
     if not disk.any():                  # a disk smaller than a pixel: the nearest pixel
         disk = np.zeros((h, w), bool)
@@ -411,7 +424,7 @@ def add_sun(radiance_eq: np.ndarray, observed: np.ndarray, fit: SunFit,
     return rad.astype(np.float32), (f"added: a sun of {radius_deg:.1f}° at elevation "
                                     f"{np.degrees(np.arcsin(fit.direction[2])):.1f}°, "
                                     f"E_sun/E_up {fit.k:.2f} (k), {int(hot.sum())} guessed "
-                                    f"hot pixels of the unobserved sky reset")
+                                    f"hot pixels of the unobserved sky reset{sky_note}")
 
 
 def seen_sun(radiance_eq: np.ndarray, observed: np.ndarray, near: np.ndarray,

@@ -49,7 +49,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core.equirect import coverage, equirect_directions, pixel_solid_angles
-from comgs_dr.lighting import backends, envmap, hdr, scene_label, sun_fit
+from comgs_dr.lighting import backends, clear_sky, envmap, hdr, scene_label, sun_fit
 from comgs_dr.lighting import lights as light_head
 from comgs_dr.lighting.lights import TRUST_BRACKETS
 from comgs_dr.lighting.backends import default_backend
@@ -108,6 +108,11 @@ class EstimateConfig:
         "off".
     sun_radius_deg: angular radius of the sun added from the shadows, in degrees, in (0, 10]
         (default 1).
+    unseen_sky: when a sun the panorama did not see is added from the shadows, the sky the
+        capture did not see either: "clear" (default: a clear sky's shape and colour for that
+        sun at the completion's luminance, ``lighting.clear_sky``) or "completion" (the
+        completion's guess, which takes the ground's colour).
+    sky_turbidity: the clear sky's turbidity, in [1, 10] (default 3: a clear day).
     """
     width: int = 1024
     height: int = 512
@@ -128,6 +133,8 @@ class EstimateConfig:
     clipped_max_texels: float = float("inf")
     sun_from_shadows: str = "auto"
     sun_radius_deg: float = 1.0
+    unseen_sky: str = "clear"
+    sky_turbidity: float = clear_sky.DEFAULT_TURBIDITY
 
     def validate(self) -> None:
         if self.label not in scene_label.LABEL_CHOICES:
@@ -176,6 +183,12 @@ class EstimateConfig:
         if self.sun_from_shadows not in ("auto", "off"):
             raise ValueError(f"EstimateConfig.sun_from_shadows must be 'auto' or 'off', got "
                              f"{self.sun_from_shadows!r}")
+        if self.unseen_sky not in ("clear", "completion"):
+            raise ValueError(f"EstimateConfig.unseen_sky must be 'clear' or 'completion', got "
+                             f"{self.unseen_sky!r}")
+        if isinstance(self.sky_turbidity, bool) or not 1.0 <= float(self.sky_turbidity) <= 10.0:
+            raise ValueError(f"EstimateConfig.sky_turbidity must be in [1, 10], got "
+                             f"{self.sky_turbidity!r}")
         if isinstance(self.sun_radius_deg, bool) or not 0.0 < float(self.sun_radius_deg) <= 10.0:
             raise ValueError(f"EstimateConfig.sun_radius_deg must be in (0, 10], got "
                              f"{self.sun_radius_deg!r}")
@@ -516,7 +529,9 @@ def _sun_from_shadows(scene, space: str, radiance, observed, cfg: EstimateConfig
     if seen is not None and ldr is not None:
         radiance, rec["seen"], rec["action"] = _seen_sun(radiance, receivers, seen, ldr)
     else:
-        radiance, rec["action"] = sun_fit.add_sun(radiance, observed, fit, cfg.sun_radius_deg)
+        radiance, rec["action"] = sun_fit.add_sun(radiance, observed, fit, cfg.sun_radius_deg,
+                                                  unseen_sky=cfg.unseen_sky,
+                                                  turbidity=float(cfg.sky_turbidity))
     say("estimate_light: sun from the scene's shadows (%s): %s", fit.reason, rec["action"])
     return np.asarray(radiance, np.float32), rec
 
@@ -738,6 +753,7 @@ class PlacementEstimateConfig:
     scene_label: the classifier of label "auto" ("default": the shipped one).
     light_head: "default" (the shipped one), "none", or a file.
     sun_from_shadows: "auto" (default) or "off".
+    unseen_sky: "clear" (default) or "completion" (``EstimateConfig.unseen_sky``).
     weights: completion-net checkpoint (None: the shipped one, its hole averaged with the SH
         fill, ``backends.default_backend``).
     """
@@ -745,6 +761,7 @@ class PlacementEstimateConfig:
     scene_label: str = "default"
     light_head: str = "default"
     sun_from_shadows: str = "auto"
+    unseen_sky: str = "clear"
     weights: str | None = None
 
 
@@ -752,7 +769,7 @@ class PlacementEstimateConfig:
 # conflict with --env is reported
 _PLACEMENT_FLAGS = (("label", "--label"), ("scene_label", "--scene-label"),
                     ("weights", "--weights"), ("light_head", "--light-head"),
-                    ("sun_from_shadows", "--sun-from-shadows"))
+                    ("sun_from_shadows", "--sun-from-shadows"), ("unseen_sky", "--unseen-sky"))
 
 
 def placement_estimator(scene_run, out, env=None, say: Callable[[str], object] = log.info,
@@ -787,7 +804,8 @@ class PlacementEstimator:
         self.cfg = EstimateConfig(label=cfg.label or "auto",       # an empty value: the default
                                   scene_label=cfg.scene_label or "default",
                                   light_head=cfg.light_head or "default",
-                                  sun_from_shadows=cfg.sun_from_shadows or "auto")
+                                  sun_from_shadows=cfg.sun_from_shadows or "auto",
+                                  unseen_sky=cfg.unseen_sky or "clear")
         self.cfg.validate()
         check_model_files(self.cfg)
         if cfg.weights is not None and not Path(cfg.weights).is_file():
