@@ -23,9 +23,11 @@ def _box_hit(o, d, boxes=((LO, HI),)):
     return hit
 
 
-def _scene(caster: bool, seed=0, boxes=((LO, HI),)):
-    """Surfels of a textured 3×3 ground (+ the block) shaded by SUN and a uniform sky:
-    L = ρ/π (a + k V cos), a the sky's visible fraction past the block."""
+def _surfel_scene(boxes, sun, k, n_surfels, seed, gain, outward):
+    """Surfels of a textured 3×3 ground and the axis-aligned ``boxes`` shaded by ``sun`` and
+    a uniform sky: L = gain · ρ/π (a + k V cos), a the sky's visible fraction past the boxes
+    (cosine-weighted, 64 directions), V the sun's from the analytic boxes (not our tracer).
+    ``outward``: the boxes' side faces get outward normals (else only flipped to face up)."""
     import trimesh
 
     from comgs_dr.core.colorspace import srgb_encode
@@ -36,29 +38,35 @@ def _scene(caster: bool, seed=0, boxes=((LO, HI),)):
     from comgs_dr.surfels.scene import gbuffer_scene
     parts = [trimesh.Trimesh([[-1.5, -1.5, 0], [1.5, -1.5, 0], [1.5, 1.5, 0], [-1.5, 1.5, 0]],
                              [[0, 1, 2], [0, 2, 3]])]
-    if caster:
-        for lo, hi in boxes:
-            lo, hi = np.asarray(lo), np.asarray(hi)
-            parts.append(trimesh.creation.box(extents=hi - lo).apply_translation((lo + hi) / 2))
-    d = from_mesh(trimesh.util.concatenate(parts), 9000, seed=seed, opacity=0.99).to_numpy()
+    for lo, hi in boxes:
+        lo, hi = np.asarray(lo), np.asarray(hi)
+        parts.append(trimesh.creation.box(extents=hi - lo).apply_translation((lo + hi) / 2))
+    d = from_mesh(trimesh.util.concatenate(parts), n_surfels, seed=seed, opacity=0.99).to_numpy()
     x = d["means"].astype(np.float64)
     n = quat_to_matrix(d["quats"])[:, :, 2]
     n *= np.where(n[:, 2:3] < 0, -1.0, 1.0)
-    V = np.ones(len(x)) if not caster else \
-        ~_box_hit(x + 1e-3 * n, np.tile(SUN, (len(x), 1)), boxes)
-    # the sky term: a uniform sky seen past the box (cosine-weighted, 64 directions)
-    sky = np.ones(len(x))
-    if caster:
+    for lo, hi in boxes if outward else ():
+        lo, hi = np.asarray(lo), np.asarray(hi)
+        on = np.all((x >= lo - 1e-4) & (x <= hi + 1e-4), 1) & (np.abs(n[:, 2]) < 0.5)
+        n[on] *= np.sign(((x[on] - (lo + hi) / 2) * n[on]).sum(1))[:, None]
+    V, sky = np.ones(len(x)), np.ones(len(x))
+    if boxes:
+        V = ~_box_hit(x + 1e-3 * n, np.tile(sun, (len(x), 1)), boxes)
         dirs = sf.fibonacci_hemisphere(64)
         w = np.maximum(n @ dirs.T, 0.0)
-        seen = np.stack([~_box_hit(x + 1e-3 * n, np.tile(d, (len(x), 1)), boxes)
-                         for d in dirs], 1)
+        seen = np.stack([~_box_hit(x + 1e-3 * n, np.tile(q, (len(x), 1)), boxes)
+                         for q in dirs], 1)
         sky = (w * seen).sum(1) / np.maximum(w.sum(1), 1e-12)
     rho = np.random.default_rng(seed).uniform(0.25, 0.6, (len(x), 1)) * [[1.0, 0.9, 0.8]]
-    L = rho / np.pi * (sky + K_TRUE * V * np.maximum(n @ SUN, 0))[:, None] * 0.5
+    L = rho / np.pi * (sky + k * V * np.maximum(n @ sun, 0))[:, None] * gain
     d["sh"][:, 0] = (srgb_encode(np.clip(L, 0, 1)) - 0.5) / SH_C0
     p = SurfelParams.from_numpy(**d)
     return gbuffer_scene({"scene": p}, [], targets="weight"), p
+
+
+def _scene(caster: bool, seed=0, boxes=((LO, HI),)):
+    """A ground (+ the block) under SUN, k = K_TRUE (:func:`_surfel_scene`)."""
+    return _surfel_scene(boxes if caster else (), SUN, K_TRUE, 9000, seed, 0.5, False)
 
 
 CFG = sf.SunFitConfig(points=2000, directions=96, refine=24)
@@ -249,41 +257,10 @@ def test_estimate_light_rescales_a_clipped_seen_sun_and_keeps_a_measured_one():
 
 
 def _walled_scene(sun, seed=2, k=K_TRUE):
-    """A 3×3 ground, a 0.8-high wall along x at y = 1 and a block in front of it; surfels
-    shaded by ``sun`` and a uniform sky with their outward normals (the block's shadow ends on
-    the wall, then climbs it)."""
-    import trimesh
-
-    from comgs_dr.core.colorspace import srgb_encode
-    from comgs_dr.surfels.from_mesh import from_mesh
-    from comgs_dr.surfels.io import quat_to_matrix
-    from comgs_dr.surfels.kernel import SH_C0
-    from comgs_dr.surfels.params import SurfelParams
-    from comgs_dr.surfels.scene import gbuffer_scene
+    """A 3×3 ground, a 0.8-high wall along x at y = 1 and a block in front of it, under
+    ``sun`` with outward normals (the block's shadow ends on the wall, then climbs it)."""
     boxes = (((-1.5, 1.0, 0.0), (1.5, 1.15, 0.8)), ((-0.2, 0.2, 0.0), (0.2, 0.5, 0.5)))
-    parts = [trimesh.Trimesh([[-1.5, -1.5, 0], [1.5, -1.5, 0], [1.5, 1.5, 0], [-1.5, 1.5, 0]],
-                             [[0, 1, 2], [0, 2, 3]])]
-    for lo, hi in boxes:
-        lo, hi = np.asarray(lo), np.asarray(hi)
-        parts.append(trimesh.creation.box(extents=hi - lo).apply_translation((lo + hi) / 2))
-    d = from_mesh(trimesh.util.concatenate(parts), 12000, seed=seed, opacity=0.99).to_numpy()
-    x = d["means"].astype(np.float64)
-    n = quat_to_matrix(d["quats"])[:, :, 2]
-    n *= np.where(n[:, 2:3] < 0, -1.0, 1.0)
-    for lo, hi in boxes:                                     # the boxes' faces face outward
-        lo, hi = np.asarray(lo), np.asarray(hi)
-        on = np.all((x >= lo - 1e-4) & (x <= hi + 1e-4), 1) & (np.abs(n[:, 2]) < 0.5)
-        n[on] *= np.sign(((x[on] - (lo + hi) / 2) * n[on]).sum(1))[:, None]
-    V = ~_box_hit(x + 1e-3 * n, np.tile(sun, (len(x), 1)), boxes)
-    dirs = sf.fibonacci_hemisphere(64)
-    w = np.maximum(n @ dirs.T, 0.0)
-    seen = np.stack([~_box_hit(x + 1e-3 * n, np.tile(q, (len(x), 1)), boxes) for q in dirs], 1)
-    sky = (w * seen).sum(1) / np.maximum(w.sum(1), 1e-12)
-    rho = np.random.default_rng(seed).uniform(0.25, 0.6, (len(x), 1)) * [[1.0, 0.9, 0.8]]
-    L = rho / np.pi * (sky + k * V * np.maximum(n @ sun, 0))[:, None] * 0.25
-    d["sh"][:, 0] = (srgb_encode(np.clip(L, 0, 1)) - 0.5) / SH_C0
-    p = SurfelParams.from_numpy(**d)
-    return gbuffer_scene({"scene": p}, [], targets="weight"), p
+    return _surfel_scene(boxes, sun, k, 12000, seed, 0.25, True)
 
 
 def test_a_shadow_climbing_a_wall_fixes_the_low_suns_elevation():
