@@ -1,9 +1,9 @@
 """The command line: ``comgs batch JOBS.yaml [--ray ADDRESS]``, and ``--ray`` / ``--shards``
 on ``comgs render-comp`` (docs/batch.md).
 
-``_add_batch`` is registered after ``_add_render_comp``: it adds the Ray flags to the
-render-comp parser already built, whose command then runs sharded when ``--ray`` is given
-and exactly as before otherwise.
+``add_render_comp_ray`` is called by ``cli.composition`` when it builds the render-comp
+parser: it adds the Ray flags, with which the command runs sharded (``--ray``), and exactly
+as before otherwise.
 """
 from __future__ import annotations
 
@@ -36,7 +36,6 @@ def _add_batch(sub) -> None:
                         "on a cluster a shared path)")
     p.add_argument("--quiet", action="store_true", help="only the summary")
     p.set_defaults(func=_cmd_batch)
-    _add_render_comp_ray(sub)
 
 
 def _cmd_batch(args) -> int:
@@ -60,10 +59,8 @@ def _cmd_batch(args) -> int:
 
 # ----------------------------------------------------------------------------- render-comp --ray
 
-def _add_render_comp_ray(sub) -> None:
-    p = sub.choices.get("render-comp")
-    if p is None:
-        return
+def add_render_comp_ray(p) -> None:
+    """The Ray flags on the render-comp parser ``p`` (its command then dispatches on --ray)."""
     g = p.add_argument_group("Ray: the frames split over workers (docs/batch.md); the PNGs "
                              "are the single process's, byte for byte")
     g.add_argument("--ray", metavar="ADDRESS", default=None, help=RAY_HELP)

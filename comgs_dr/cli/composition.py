@@ -183,6 +183,8 @@ def _add_render_comp(sub) -> None:
                         "(multiplies the albedo), roughness=X, metallic=Y")
     add_config_flags(p, RenderCompConfig, RENDER_COMP_FLAGS)
     p.set_defaults(func=_cmd_render_comp)
+    from comgs_dr.cli.batch import add_render_comp_ray   # its --ray/--shards/--num-cpus
+    add_render_comp_ray(p)
 
 
 def _cmd_render_comp(args) -> int:
