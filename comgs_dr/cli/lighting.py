@@ -45,6 +45,15 @@ ESTIMATE_FLAGS = {
     "oct_res": Spelling(help="octahedral map side"),
     "net_resolution": Spelling(nargs=2, type=int, metavar=("H", "W"), help="network input "
                                "size (None: the size the weights were trained at)"),
+    "sun_from_shadows": Spelling(choices=("auto", "off"), help="auto: a sun the panorama did "
+                                 "not see is fitted to the scene's cast shadows "
+                                 "(lighting.sun_fit); off: the panorama alone"),
+    "sun_radius_deg": Spelling(help="angular radius of that sun, degrees (0, 10]"),
+    "unseen_sky": Spelling(choices=("clear", "completion"), help="with that sun, the sky "
+                           "the capture did not see: clear (a clear sky for the sun at the "
+                           "completion's irradiance, lighting.clear_sky) or the completion's "
+                           "guess"),
+    "sky_turbidity": Spelling(help="that clear sky's turbidity, [1, 10] (3: a clear day)"),
 }
 BACKEND_FLAGS = {
     "backend": Spelling(choices=("net+sh", "net", "mean", "push_pull", "sh", "diffusers"),
