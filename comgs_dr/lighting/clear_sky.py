@@ -2,8 +2,8 @@
 
 Outdoor captures rarely look at the sky. The panorama completion then guesses the unseen
 upper hemisphere from what the capture saw, the ground and walls, and on the composition
-benchmark its guess is the ground's warm colour: the unseen sky's irradiance on a surface
-facing up is 0.64, 0.51, 0.28 of the truth's per channel (chroma 1.22, 1.08, 0.70 against the
+benchmark its guess is the ground's warm colour: the unseen sky's power is 0.64, 0.51,
+0.28 of the truth's per channel (chroma 1.22, 1.08, 0.70 against the
 real map's 0.87, 0.97, 1.15), and the sun added from the shadows, k_rgb × that irradiance,
 inherits the missing blue (docs/composite.md, "The unseen sky"). The shadows measure k (the
 sun against the sky) but not the sky's own colour: that is the ground's albedo times the
@@ -13,8 +13,8 @@ When the shadows show a sun (parallel shadows across the scene: ``sun_fit``), th
 daylight sky, and its colour and its distribution over the hemisphere follow from the sun's
 elevation through a physical model: Mitsuba's ``sunsky`` emitter (Hosek and Wilkie's
 analytic sky), used here rather than a hand-written model. Its turbidity 3 (a clear day)
-gives the benchmark's real map's sky irradiance chroma within 8 % per channel at its 8°
-sun (0.72, 1.01, 1.27 against 0.72, 0.93, 1.35; turbidity 8: 1.01, 1.02, 0.98). The model
+gives the benchmark's real map's sky irradiance chroma within 10 % per channel at its 8°
+sun (0.74, 1.02, 1.25 against 0.72, 0.93, 1.35; turbidity 8: 1.01, 1.02, 0.98). The model
 supplies the shape and colour only: the unseen sky keeps the completion's luminance
 irradiance on a surface facing up (the
 absolute level needs the ground's albedo, which nothing measures), and observed pixels are
