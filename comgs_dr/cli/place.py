@@ -3,8 +3,6 @@
 (``stages.place``). Register with ``_add_place(subparsers)``."""
 from __future__ import annotations
 
-import sys
-
 from comgs_dr import set_variant
 from comgs_dr.cli._flags import Spelling, add_config_flags, field_overrides
 from comgs_dr.core.config import shared_options
@@ -62,20 +60,17 @@ def _add_place(sub) -> None:
 
 
 def _cmd_place(args) -> int:
-    """Exit 0, or 2 with ``comgs place: error: FILE: problem`` on stderr."""
-    try:
-        name, sep, run = args.object.partition("=")
-        if not sep or not name or not run:
-            raise ValueError(f"--object must be NAME=RUN, got {args.object!r}")
-        if args.at is not None and (args.pixel is not None or args.view is not None):
-            raise ValueError("give --view VIEW --pixel X Y, or --at X Y Z, not both")
-        if args.at is None and (args.pixel is None or args.view is None):
-            raise ValueError("give --view VIEW --pixel X Y (or --at X Y Z)")
-        cfg = PlaceConfig(**field_overrides(args, PlaceConfig))
-        set_variant(args.mitsuba_variant)
-        place(args.scene_run, name, run, args.out, view=args.view, pixel=args.pixel,
-              at=args.at, cfg=cfg, say=print)
-    except (FileNotFoundError, ValueError) as e:      # PlaceError, DatasetError, bad files
-        print(f"comgs place: error: {e}", file=sys.stderr)
-        return 2
+    """Exit 0; a bad input raises (FileNotFoundError, ValueError: PlaceError, DatasetError),
+    which ``cli.main`` turns into exit 2 with ``comgs place: error: FILE: problem``."""
+    name, sep, run = args.object.partition("=")
+    if not sep or not name or not run:
+        raise ValueError(f"--object must be NAME=RUN, got {args.object!r}")
+    if args.at is not None and (args.pixel is not None or args.view is not None):
+        raise ValueError("give --view VIEW --pixel X Y, or --at X Y Z, not both")
+    if args.at is None and (args.pixel is None or args.view is None):
+        raise ValueError("give --view VIEW --pixel X Y (or --at X Y Z)")
+    cfg = PlaceConfig(**field_overrides(args, PlaceConfig))
+    set_variant(args.mitsuba_variant)
+    place(args.scene_run, name, run, args.out, view=args.view, pixel=args.pixel,
+          at=args.at, cfg=cfg, say=print)
     return 0
