@@ -12,7 +12,6 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from comgs_dr.batch.spec import JobsFileError, parse_jobs
@@ -36,37 +35,8 @@ def tiny(tmp_path_factory):
     """A scene run (plane), an object run (ball + probes), a sun map, placements, a NeRF
     capture of 4 views (32 px, flat grey: the ground truth of the metrics) and a
     composition of the two (``comp``)."""
-    from test_composite import _nerf_folder, _probes_for, ball, plane, sun_map
-
-    from comgs_dr.core.similarity import Similarity, write_placements
-    from comgs_dr.lighting import envmap as em
-    from comgs_dr.sops import occlusion as occ
-    from comgs_dr.stages.compose import ComposeConfig, compose
-    from comgs_dr.surfels.io import save_ply
-    from comgs_dr.train.run import write_run_info
-    tmp = tmp_path_factory.mktemp("batch")
-    data = _nerf_folder(tmp / "data", res=32)
-    run = tmp / "scene_run"
-    write_run_info(run, data, "scene", 1, False)
-    save_ply(plane(n=20), str(run / "point_cloud.ply"))
-    p = ball((0, 0, 0), 0.3, (0.8, 0.2, 0.2), n=300)
-    (tmp / "a").mkdir()
-    save_ply(p, str(tmp / "a" / "point_cloud.ply"))
-    _probes_for(p, count=40).save(tmp / "a" / "probes.npz")
-    em.write_exr(tmp / "env.exr", sun_map(16), "octahedral")
-    for name, x in (("t", 0.2), ("t2", -0.2)):
-        write_placements(tmp / f"{name}.json",
-                         {"a": Similarity(1.0, np.eye(3), np.array([x, 0, 0.3]))})
-    compose(run, {"a": tmp / "a"}, tmp / "t.json", tmp / "comp", env=tmp / "env.exr",
-            cfg=_compose_cfg(), progress=False)
-    return tmp
-
-
-def _compose_cfg():
-    from comgs_dr.sops import occlusion as occ
-    from comgs_dr.stages.compose import ComposeConfig
-    return ComposeConfig(shadow=occ.ShadowConfig(count=100, res=8, supersample=1),
-                         scene_views=4, min_consistent=1)
+    from test_composite import tiny_composition
+    return tiny_composition(tmp_path_factory.mktemp("batch"), 32, (("t", 0.2), ("t2", -0.2)))
 
 
 def _pngs(folder) -> dict:

@@ -160,30 +160,8 @@ def test_cli_path_errors_exit_2(tmp_path, capsys, args, match):
 @pytest.fixture(scope="module")
 def tiny_comp(tmp_path_factory):
     """A one-object composition (the compose stage on a plane and a ball) + its capture."""
-    from test_composite import _nerf_folder, _probes_for, ball, plane, sun_map
-
-    from comgs_dr.core.similarity import Similarity, write_placements
-    from comgs_dr.lighting import envmap as em
-    from comgs_dr.sops import occlusion as occ
-    from comgs_dr.stages.compose import ComposeConfig, compose
-    from comgs_dr.surfels.io import save_ply
-    from comgs_dr.train.run import write_run_info
-    tmp = tmp_path_factory.mktemp("comp")
-    data = _nerf_folder(tmp / "data", res=16)
-    run = tmp / "scene_run"
-    write_run_info(run, data, "scene", 1, False)
-    save_ply(plane(n=20), str(run / "point_cloud.ply"))
-    p = ball((0, 0, 0), 0.3, (0.8, 0.2, 0.2), n=300)
-    (tmp / "a").mkdir()
-    save_ply(p, str(tmp / "a" / "point_cloud.ply"))
-    _probes_for(p, count=40).save(tmp / "a" / "probes.npz")
-    em.write_exr(tmp / "env.exr", sun_map(16), "octahedral")
-    write_placements(tmp / "t.json", {"a": Similarity(1.0, np.eye(3), np.array([0.2, 0, 0.3]))})
-    cfg = ComposeConfig(shadow=occ.ShadowConfig(count=100, res=8, supersample=1),
-                        scene_views=4, min_consistent=1)
-    compose(run, {"a": tmp / "a"}, tmp / "t.json", tmp / "comp", env=tmp / "env.exr", cfg=cfg,
-            progress=False)
-    return tmp
+    from test_composite import tiny_composition
+    return tiny_composition(tmp_path_factory.mktemp("comp"), 16)
 
 
 def test_render_comp_orbit_end_to_end(tiny_comp):

@@ -365,6 +365,36 @@ def _nerf_folder(root, n=4, res=24):
     return root
 
 
+def tiny_composition(tmp, res, placements=(("t", 0.2),)):
+    """A scene run (a plane), an object run ``a`` (a ball + probes), a sun map ``env.exr``, a
+    NeRF capture of 4 flat views at ``res`` px (``data/``), one placements file per
+    (name, x) of ``placements`` and the composition of the first in ``tmp/comp``: the
+    small composition the render-comp, camera-path and batch tests share."""
+    from comgs_dr.core.similarity import Similarity, write_placements
+    from comgs_dr.lighting import envmap as em
+    from comgs_dr.sops import occlusion as occ
+    from comgs_dr.stages.compose import ComposeConfig, compose
+    from comgs_dr.surfels.io import save_ply
+    from comgs_dr.train.run import write_run_info
+    data = _nerf_folder(tmp / "data", res=res)
+    run = tmp / "scene_run"
+    write_run_info(run, data, "scene", 1, False)
+    save_ply(plane(n=20), str(run / "point_cloud.ply"))
+    p = ball((0, 0, 0), 0.3, (0.8, 0.2, 0.2), n=300)
+    (tmp / "a").mkdir()
+    save_ply(p, str(tmp / "a" / "point_cloud.ply"))
+    _probes_for(p, count=40).save(tmp / "a" / "probes.npz")
+    em.write_exr(tmp / "env.exr", sun_map(16), "octahedral")
+    for name, x in placements:
+        write_placements(tmp / f"{name}.json",
+                         {"a": Similarity(1.0, np.eye(3), np.array([x, 0, 0.3]))})
+    cfg = ComposeConfig(shadow=occ.ShadowConfig(count=100, res=8, supersample=1),
+                        scene_views=4, min_consistent=1)
+    compose(run, {"a": tmp / "a"}, tmp / f"{placements[0][0]}.json", tmp / "comp",
+            env=tmp / "env.exr", cfg=cfg, progress=False)
+    return tmp
+
+
 def test_compose_cache_recomputes_only_what_a_moved_object_touches(tmp_path, caplog, capsys):
     from comgs_dr.stages.compose import ComposeConfig, compose
     from comgs_dr.train.run import write_run_info
