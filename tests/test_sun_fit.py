@@ -192,6 +192,8 @@ def test_grid_and_config_checks():
         EstimateConfig(unseen_sky="blue").validate()
     with pytest.raises(ValueError, match="sky_turbidity"):
         EstimateConfig(sky_turbidity=0.5).validate()
+    with pytest.raises(ValueError, match="max_ground_albedo"):
+        EstimateConfig(max_ground_albedo=1.5).validate()
     few = sf.fit_sun(np.zeros((10, 3)), np.tile([0, 0, 1.0], (10, 1)), np.ones((10, 3)),
                      lambda d: np.ones(10))
     assert not few.usable and "receivers" in few.reason
@@ -282,3 +284,43 @@ def test_a_shadow_climbing_a_wall_fixes_the_low_suns_elevation():
     sc, p = _walled_scene(sun, k=0.0)                 # overcast: walls and their own shading,
     none = sf.fit_sun_in_scene(sc, p, "srgb", CFG)     # no shadow: nothing invented
     assert not none.usable and "no usable cast shadow" in none.reason, none.reason
+
+
+def test_turbidity_from_the_shadows_sun_sky_ratio():
+    """A hazier model sky takes light from its sun (k falls with turbidity at any elevation);
+    the turbidity read back from a model's own k is that turbidity; out of range: clamped."""
+    from comgs_dr.lighting import clear_sky
+    for el in (10.0, 45.0):
+        d = np.array([np.cos(np.radians(el)), 0.0, np.sin(np.radians(el))])
+        ks = [clear_sky.sun_sky_ratio(d, t) for t in (2.0, 5.0, 8.0)]
+        assert ks[0] > ks[1] > ks[2] > 0
+        for t, k in zip((2.0, 5.0, 8.0), ks):
+            assert clear_sky.turbidity_for(d, k) == pytest.approx(t, abs=0.05)
+        assert clear_sky.turbidity_for(d, 1e3) == 1.5
+        assert clear_sky.turbidity_for(d, 1e-3) == 10.0 == clear_sky.turbidity_for(d, np.nan)
+
+
+def test_an_unseen_sky_too_dim_for_the_ground_it_lights_is_raised():
+    """A ground reflecting more than it receives (E_down / E_up > 1) is impossible: the
+    unseen sky (and the sun that scales with it) is raised until the brightest channel
+    reflects max_albedo; a plausible one is left alone; seen pixels never change."""
+    from comgs_dr.core.equirect import equirect_directions, solid_angle_image
+    from comgs_dr.lighting import clear_sky
+    h, w = 32, 64
+    dirs = equirect_directions(h, w)
+    rad = np.where(dirs[..., 2:3] > 0, [0.1, 0.1, 0.12], [0.3, 0.2, 0.1])
+    unseen = (dirs[..., 2] > 0.2)                              # a band above the horizon seen
+    k, el = np.array([2.0, 1.5, 1.0]), np.radians(30.0)
+    out, s, implied = clear_sky.ground_albedo_floor(rad, unseen, k, el, 0.5)
+    assert implied[0] > 1.0 and s > 1.0
+    np.testing.assert_array_equal(out[~unseen], rad[~unseen])
+    np.testing.assert_allclose(out[unseen], s * rad[unseen])
+    sa = solid_angle_image(h, w)
+    e_up = np.einsum("hwc,hw->c", out, sa * np.maximum(dirs[..., 2], 0))
+    e_down = np.einsum("hwc,hw->c", out, sa * np.maximum(-dirs[..., 2], 0))
+    ratio = e_down / (e_up * (1 + k * np.sin(el)))
+    assert ratio.max() == pytest.approx(0.5, rel=1e-6)           # the brightest channel at 0.5
+    same, s1, _ = clear_sky.ground_albedo_floor(out, unseen, k, el, 0.5)
+    assert s1 == 1.0 and (same == out).all()                   # plausible now: left alone
+    off, s0, _ = clear_sky.ground_albedo_floor(rad, unseen, k, el, 0.0)
+    assert s0 == 1.0 and (off == rad).all()

@@ -53,7 +53,11 @@ ESTIMATE_FLAGS = {
                            "the capture did not see: clear (a clear sky for the sun at the "
                            "completion's irradiance, lighting.clear_sky) or the completion's "
                            "guess"),
-    "sky_turbidity": Spelling(help="that clear sky's turbidity, [1, 10] (3: a clear day)"),
+    "max_ground_albedo": Spelling(help="with that sun, the unseen sky is raised until the "
+                                  "ground below reflects at most this of the light above "
+                                  "(0: off)"),
+    "sky_turbidity": Spelling(help="that clear sky's turbidity, [1, 10] (1.5 very clear ... "
+                              "10 hazy); 0: the one whose sun/sky ratio is the shadows' k"),
 }
 BACKEND_FLAGS = {
     "backend": Spelling(choices=("net+sh", "net", "mean", "push_pull", "sh", "diffusers"),

@@ -377,7 +377,8 @@ def up_irradiance(radiance_eq: np.ndarray) -> np.ndarray:
 
 def add_sun(radiance_eq: np.ndarray, observed: np.ndarray, fit: SunFit,
             radius_deg: float = 1.0, replace_deg: float = 25.0,
-            unseen_sky: str = "clear", turbidity: float = clear_sky.DEFAULT_TURBIDITY):
+            unseen_sky: str = "clear", turbidity: float | None = None,
+            max_ground_albedo: float = clear_sky.MAX_GROUND_ALBEDO):
     """The panorama with the fitted sun: (new equirect [H, W, 3], what was done: str).
 
     The panorama keeps what it saw: if the sun's direction was observed (``observed``
@@ -388,8 +389,11 @@ def add_sun(radiance_eq: np.ndarray, observed: np.ndarray, fit: SunFit,
     than ``HOT_FACTOR`` × that median (a completion's guessed sun far from the one the shadows
     show would cast a second shadow). ``unseen_sky`` "clear" (default): the unobserved sky
     then takes a clear sky's shape and colour for this sun at its own luminance
-    (``clear_sky.fill_unseen_sky``: the completion guesses the sky from the ground's colour);
-    "completion": it stays the completion's. Last a disk of ``radius_deg`` is added whose
+    (``clear_sky.fill_unseen_sky``: the completion guesses the sky from the ground's colour),
+    of ``turbidity`` (None: the one whose sun/sky ratio is the fit's k,
+    ``clear_sky.turbidity_for``); "completion": it stays the completion's. Then the unseen
+    sky is raised if its level makes the ground reflect more than ``max_ground_albedo`` of
+    what it receives (``clear_sky.ground_albedo_floor``; 0: off). Last a disk of ``radius_deg`` is added whose
     irradiance on a surface facing it is k_rgb × the map's E(up)."""
     rad = np.array(radiance_eq, np.float64)
     h, w = rad.shape[:2]
@@ -408,12 +412,20 @@ def add_sun(radiance_eq: np.ndarray, observed: np.ndarray, fit: SunFit,
     rad[hot] = sky
     sky_note = ""
     if unseen_sky == "clear":
+        if turbidity is None:
+            turbidity = clear_sky.turbidity_for(fit.direction, fit.k)
         rad, scale = clear_sky.fill_unseen_sky(rad, unseen, fit.direction, turbidity)
-        sky_note = (f", the unseen sky a clear sky (turbidity {turbidity:g}) at the "
+        sky_note = (f", the unseen sky a clear sky (turbidity {turbidity:.1f}) at the "
                     f"completion's luminance" if scale > 0 else "")
     elif unseen_sky != "completion":
         raise ValueError(f"add_sun: unseen_sky must be 'clear' or 'completion', got "
                          f"{unseen_sky!r}")
+    rad, lift, implied = clear_sky.ground_albedo_floor(
+        rad, unseen, fit.k_rgb, float(np.arcsin(np.clip(fit.direction[2], -1, 1))),
+        max_ground_albedo)
+    if lift > 1.0:
+        sky_note += (f", raised {lift:.2f}x (the ground reflected "
+                     f"{', '.join(f'{a:.2f}' for a in implied)} of its light)")
     e_up = up_irradiance(rad)                        # the sky's, without a (guessed) sun
     if not disk.any():                  # a disk smaller than a pixel: the nearest pixel
         disk = np.zeros((h, w), bool)

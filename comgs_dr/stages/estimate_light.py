@@ -49,7 +49,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core.equirect import coverage, equirect_directions, pixel_solid_angles
-from comgs_dr.lighting import backends, clear_sky, envmap, hdr, scene_label, sun_fit
+from comgs_dr.lighting import backends, envmap, hdr, scene_label, sun_fit
 from comgs_dr.lighting import lights as light_head
 from comgs_dr.lighting.lights import TRUST_BRACKETS
 from comgs_dr.lighting.backends import default_backend
@@ -112,7 +112,12 @@ class EstimateConfig:
         capture did not see either: "clear" (default: a clear sky's shape and colour for that
         sun at the completion's luminance, ``lighting.clear_sky``) or "completion" (the
         completion's guess, which takes the ground's colour).
-    sky_turbidity: the clear sky's turbidity, in [1, 10] (default 3: a clear day).
+    sky_turbidity: the clear sky's turbidity, in [1, 10] (1.5 very clear … 10 hazy), or 0
+        (default): the one at which the sky model's sun/sky ratio is the shadows' k
+        (``clear_sky.turbidity_for``: the shadows' contrast says how hazy the sky is).
+    max_ground_albedo: with that sun, the unseen sky is raised until the surroundings below
+        the horizon reflect at most this fraction of the light above (E_down / E_up per
+        channel, ``clear_sky.ground_albedo_floor``; default 0.5; 0: off).
     """
     width: int = 1024
     height: int = 512
@@ -134,7 +139,8 @@ class EstimateConfig:
     sun_from_shadows: str = "auto"
     sun_radius_deg: float = 1.0
     unseen_sky: str = "clear"
-    sky_turbidity: float = clear_sky.DEFAULT_TURBIDITY
+    sky_turbidity: float = 0.0
+    max_ground_albedo: float = 0.5
 
     def validate(self) -> None:
         if self.label not in scene_label.LABEL_CHOICES:
@@ -186,9 +192,14 @@ class EstimateConfig:
         if self.unseen_sky not in ("clear", "completion"):
             raise ValueError(f"EstimateConfig.unseen_sky must be 'clear' or 'completion', got "
                              f"{self.unseen_sky!r}")
-        if isinstance(self.sky_turbidity, bool) or not 1.0 <= float(self.sky_turbidity) <= 10.0:
-            raise ValueError(f"EstimateConfig.sky_turbidity must be in [1, 10], got "
+        if isinstance(self.sky_turbidity, bool) or not (
+                float(self.sky_turbidity) == 0.0 or 1.0 <= float(self.sky_turbidity) <= 10.0):
+            raise ValueError(f"EstimateConfig.sky_turbidity must be 0 (from the shadows) or in "
+                             f"[1, 10], got "
                              f"{self.sky_turbidity!r}")
+        if isinstance(self.max_ground_albedo, bool) or not 0.0 <= float(self.max_ground_albedo) <= 1.0:
+            raise ValueError(f"EstimateConfig.max_ground_albedo must be in [0, 1], got "
+                             f"{self.max_ground_albedo!r}")
         if isinstance(self.sun_radius_deg, bool) or not 0.0 < float(self.sun_radius_deg) <= 10.0:
             raise ValueError(f"EstimateConfig.sun_radius_deg must be in (0, 10], got "
                              f"{self.sun_radius_deg!r}")
@@ -531,7 +542,8 @@ def _sun_from_shadows(scene, space: str, radiance, observed, cfg: EstimateConfig
     else:
         radiance, rec["action"] = sun_fit.add_sun(radiance, observed, fit, cfg.sun_radius_deg,
                                                   unseen_sky=cfg.unseen_sky,
-                                                  turbidity=float(cfg.sky_turbidity))
+                                                  turbidity=float(cfg.sky_turbidity) or None,
+                                                  max_ground_albedo=float(cfg.max_ground_albedo))
     say("estimate_light: sun from the scene's shadows (%s): %s", fit.reason, rec["action"])
     return np.asarray(radiance, np.float32), rec
 
