@@ -32,6 +32,11 @@ ESTIMATION_FLAGS = {
                            "shadows, the sky the capture did not see: clear (a clear sky for "
                            "that sun, lighting.clear_sky) or the completion's guess; not with "
                            "--env"),
+    "sky_turbidity": Spelling(help="that clear sky's turbidity, [1, 10]; 0: from the "
+                              "shadows' sun/sky ratio; not with --env"),
+    "max_ground_albedo": Spelling(help="that unseen sky is raised until the ground below "
+                                  "reflects at most this of the light above (0: off); not "
+                                  "with --env"),
     "weights": Spelling(metavar="W.pt", help="completion-net checkpoint of the estimation "
                         "(None: the shipped one; not with --env)"),
     "light_head": Spelling(metavar="HEAD.pt", help="light head of the estimation: a file, "

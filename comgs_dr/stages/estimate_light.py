@@ -766,6 +766,8 @@ class PlacementEstimateConfig:
     light_head: "default" (the shipped one), "none", or a file.
     sun_from_shadows: "auto" (default) or "off".
     unseen_sky: "clear" (default) or "completion" (``EstimateConfig.unseen_sky``).
+    sky_turbidity: 0 (default: from the shadows) or in [1, 10] (``EstimateConfig``).
+    max_ground_albedo: in [0, 1] (default 0.5; 0: off; ``EstimateConfig``).
     weights: completion-net checkpoint (None: the shipped one, its hole averaged with the SH
         fill, ``backends.default_backend``).
     """
@@ -774,6 +776,8 @@ class PlacementEstimateConfig:
     light_head: str = "default"
     sun_from_shadows: str = "auto"
     unseen_sky: str = "clear"
+    sky_turbidity: float = 0.0
+    max_ground_albedo: float = 0.5
     weights: str | None = None
 
 
@@ -781,7 +785,9 @@ class PlacementEstimateConfig:
 # conflict with --env is reported
 _PLACEMENT_FLAGS = (("label", "--label"), ("scene_label", "--scene-label"),
                     ("weights", "--weights"), ("light_head", "--light-head"),
-                    ("sun_from_shadows", "--sun-from-shadows"), ("unseen_sky", "--unseen-sky"))
+                    ("sun_from_shadows", "--sun-from-shadows"), ("unseen_sky", "--unseen-sky"),
+                    ("sky_turbidity", "--sky-turbidity"),
+                    ("max_ground_albedo", "--max-ground-albedo"))
 
 
 def placement_estimator(scene_run, out, env=None, say: Callable[[str], object] = log.info,
@@ -817,7 +823,9 @@ class PlacementEstimator:
                                   scene_label=cfg.scene_label or "default",
                                   light_head=cfg.light_head or "default",
                                   sun_from_shadows=cfg.sun_from_shadows or "auto",
-                                  unseen_sky=cfg.unseen_sky or "clear")
+                                  unseen_sky=cfg.unseen_sky or "clear",
+                                  sky_turbidity=cfg.sky_turbidity,
+                                  max_ground_albedo=cfg.max_ground_albedo)
         self.cfg.validate()
         check_model_files(self.cfg)
         if cfg.weights is not None and not Path(cfg.weights).is_file():
