@@ -14,8 +14,8 @@ daylight sky, and its colour and its distribution over the hemisphere follow fro
 elevation and the air's turbidity through a physical model: Mitsuba's ``sunsky`` emitter
 (Hosek and Wilkie's analytic sky), used here rather than a hand-written model. The
 turbidity is read from the shadows too: they measure k, the sun's irradiance against the
-sky's, and a hazier sky takes light from the sun (the model's k: 5.5 at turbidity 3, 3.4 at
-5, 0.9 at 10, at any elevation), so the turbidity is the one whose model k is the fit's
+sky's, and a hazier sky takes light from the sun (the model's k at sun elevations 10–70°:
+5.5–5.9 at turbidity 3, 3.1–3.6 at 5, 0.3–0.9 at 10), so the turbidity is the one whose model k is the fit's
 (:func:`turbidity_for`; the benchmark's sunrise: k 4.63 → 3.4, a city map: 1.54 → 8.7).
 The model supplies the shape and colour only: the unseen sky keeps the completion's
 luminance irradiance on a surface facing up (the absolute level needs the ground's albedo,
@@ -88,8 +88,8 @@ def sun_sky_ratio(direction, turbidity: float, sky_res: int = 64, sun_samples: i
     ``direction`` at ``turbidity``: the quantity ``sun_fit`` measures from the shadows. The
     sky's irradiance on a [sky_res, 2 sky_res] equirect; the sun's over a square of
     ``sun_samples``² directions across its disk (0.27° radius). A hazier sky (higher
-    turbidity) takes light from the sun: k 5.5 at turbidity 3, 3.4 at 5, 0.9 at 10, nearly
-    independent of the elevation (10–70°)."""
+    turbidity) takes light from the sun: k 5.5–5.9 at turbidity 3, 3.1–3.6 at 5, 0.3–0.9
+    at 10, over sun elevations 10–70° (the least at the lowest sun)."""
     sky, d = _model(direction, turbidity, sun=False)
     dirs = equirect_directions(sky_res, 2 * sky_res)
     cos = np.maximum(dirs[..., 2], 0.0) * solid_angle_image(sky_res, 2 * sky_res)
