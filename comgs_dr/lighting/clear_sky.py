@@ -15,8 +15,9 @@ elevation and the air's turbidity through a physical model: Mitsuba's ``sunsky``
 (Hosek and Wilkie's analytic sky), used here rather than a hand-written model. The
 turbidity is read from the shadows too: they measure k, the sun's irradiance against the
 sky's, and a hazier sky takes light from the sun (the model's k at sun elevations 10–70°:
-5.5–5.9 at turbidity 3, 3.1–3.6 at 5, 0.3–0.9 at 10), so the turbidity is the one whose model k is the fit's
-(:func:`turbidity_for`; the benchmark's sunrise: k 4.63 → 3.4, a city map: 1.54 → 8.7).
+5.5–5.9 at turbidity 3, 3.1–3.6 at 5, 0.3–0.9 at 10), so the turbidity is the one whose
+model k is the fit's (:func:`turbidity_for`; the benchmark's sunrise: k 4.63 → 3.4, a
+city map: 1.54 → 8.7).
 The model supplies the shape and colour only: the unseen sky keeps the completion's
 luminance irradiance on a surface facing up (the absolute level needs the ground's albedo,
 which nothing measures), and observed pixels are never changed (the panorama keeps what it
