@@ -393,8 +393,9 @@ def add_sun(radiance_eq: np.ndarray, observed: np.ndarray, fit: SunFit,
     of ``turbidity`` (None: the one whose sun/sky ratio is the fit's k,
     ``clear_sky.turbidity_for``); "completion": it stays the completion's. Then the unseen
     sky is raised if its level makes the ground reflect more than ``max_ground_albedo`` of
-    what it receives (``clear_sky.ground_albedo_floor``; 0: off). Last a disk of ``radius_deg`` is added whose
-    irradiance on a surface facing it is k_rgb × the map's E(up)."""
+    what it receives (``clear_sky.ground_albedo_floor``; 0: off). Last a disk of
+    ``radius_deg`` is added whose irradiance on a surface facing it is k_rgb × the map's
+    E(up)."""
     rad = np.array(radiance_eq, np.float64)
     h, w = rad.shape[:2]
     observed = _resize_mask(observed, h, w)

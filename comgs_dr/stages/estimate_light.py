@@ -197,7 +197,8 @@ class EstimateConfig:
             raise ValueError(f"EstimateConfig.sky_turbidity must be 0 (from the shadows) or in "
                              f"[1, 10], got "
                              f"{self.sky_turbidity!r}")
-        if isinstance(self.max_ground_albedo, bool) or not 0.0 <= float(self.max_ground_albedo) <= 1.0:
+        if isinstance(self.max_ground_albedo, bool) \
+                or not 0.0 <= float(self.max_ground_albedo) <= 1.0:
             raise ValueError(f"EstimateConfig.max_ground_albedo must be in [0, 1], got "
                              f"{self.max_ground_albedo!r}")
         if isinstance(self.sun_radius_deg, bool) or not 0.0 < float(self.sun_radius_deg) <= 10.0:
