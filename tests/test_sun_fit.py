@@ -324,3 +324,17 @@ def test_an_unseen_sky_too_dim_for_the_ground_it_lights_is_raised():
     assert s1 == 1.0 and (same == out).all()                   # plausible now: left alone
     off, s0, _ = clear_sky.ground_albedo_floor(rad, unseen, k, el, 0.0)
     assert s0 == 1.0 and (off == rad).all()
+
+
+def test_the_sky_lift_is_capped_when_little_of_it_is_unseen():
+    """A small unseen patch under a bright ground would need a huge factor; it gets at
+    most MAX_LIFT (not a bright light nobody saw)."""
+    from comgs_dr.core.equirect import equirect_directions
+    from comgs_dr.lighting import clear_sky
+    h, w = 32, 64
+    dirs = equirect_directions(h, w)
+    rad = np.where(dirs[..., 2:3] > 0, 0.1, 0.5) * np.ones(3)
+    patch = dirs[..., 2] > 0.97                                   # a few pixels at the zenith
+    out, s, implied = clear_sky.ground_albedo_floor(rad, patch, np.zeros(3), 0.5, 0.5)
+    assert implied.max() > 2.0 and s == clear_sky.MAX_LIFT
+    np.testing.assert_allclose(out[patch], clear_sky.MAX_LIFT * rad[patch])

@@ -44,6 +44,8 @@ TURBIDITIES = (1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0)   # searc
 GROUND_ALBEDO = 0.2         # the model's ground albedo (its sky's brightening near the horizon)
 MIN_ELEVATION_DEG = 0.5     # the model needs the sun above the horizon
 MAX_GROUND_ALBEDO = 0.5     # E_down / E_up allowed before the unseen sky is raised
+MAX_LIFT = 4.0              # ... by at most this factor (a few unseen pixels would else
+                            # become a fake bright light; the city map needed 3.14)
 
 
 def clear_sky(direction, height: int, width: int, turbidity: float = DEFAULT_TURBIDITY):
@@ -158,7 +160,9 @@ def ground_albedo_floor(radiance_eq, unseen, k_rgb, sun_elevation: float,
     ``sun_elevation`` radians) are scaled by the least s that brings every channel to
     ``max_albedo`` (0.5: natural grounds, soil, grass, asphalt, concrete, gravel, reflect
     under half; fresh snow and white sand more, and are then lit too brightly); never
-    lowered. Zero ``max_albedo``, nothing unseen or no light above: unchanged (s = 1)."""
+    lowered, and raised by at most ``MAX_LIFT``: when little of the sky is unseen, scaling it
+    further would turn those few pixels into a bright light nobody saw. Zero
+    ``max_albedo``, nothing unseen or no light above: unchanged (s = 1)."""
     rad = np.array(radiance_eq, np.float64)
     h, w = rad.shape[:2]
     dirs = equirect_directions(h, w)
@@ -174,6 +178,6 @@ def ground_albedo_floor(radiance_eq, unseen, k_rgb, sun_elevation: float,
     if max_albedo <= 0 or not unseen.any() or not (e_unseen > 0).all():
         return rad, 1.0, implied
     need = (e_down / (max_albedo * sun) - e_seen) / e_unseen
-    s = float(max(1.0, need.max()))
+    s = float(np.clip(need.max(), 1.0, MAX_LIFT))
     rad[unseen] *= s
     return rad, s, implied

@@ -426,7 +426,8 @@ def add_sun(radiance_eq: np.ndarray, observed: np.ndarray, fit: SunFit,
         max_ground_albedo)
     if lift > 1.0:
         sky_note += (f", raised {lift:.2f}x (the ground reflected "
-                     f"{', '.join(f'{a:.2f}' for a in implied)} of its light)")
+                     f"{', '.join(f'{a:.2f}' for a in implied)} of its light"
+                     + (", the most it is raised)" if lift >= clear_sky.MAX_LIFT else ")"))
     e_up = up_irradiance(rad)                        # the sky's, without a (guessed) sun
     if not disk.any():                  # a disk smaller than a pixel: the nearest pixel
         disk = np.zeros((h, w), bool)
