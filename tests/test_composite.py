@@ -365,6 +365,29 @@ def _nerf_folder(root, n=4, res=24):
     return root
 
 
+def scene_run(root, res, plane_n):
+    """``root/scene_run``: a step-1 run of a plane (``plane_n``²) whose dataset is a NeRF
+    capture of 4 flat views at ``res`` px in ``root/data``; returns the run folder."""
+    from comgs_dr.surfels.io import save_ply
+    from comgs_dr.train.run import write_run_info
+    data = _nerf_folder(root / "data", res=res)
+    run = root / "scene_run"
+    write_run_info(run, data, "scene", 1, False)
+    save_ply(plane(n=plane_n), str(run / "point_cloud.ply"))
+    return run
+
+
+def object_run(folder, r, albedo, probes):
+    """``folder``: an object run of a ball (radius ``r``, 300 surfels) with ``probes``
+    SOPs; returns the folder."""
+    from comgs_dr.surfels.io import save_ply
+    p = ball((0, 0, 0), r, albedo, n=300)
+    folder.mkdir()
+    save_ply(p, str(folder / "point_cloud.ply"))
+    _probes_for(p, count=probes).save(folder / "probes.npz")
+    return folder
+
+
 def tiny_composition(tmp, res, placements=(("t", 0.2),)):
     """A scene run (a plane), an object run ``a`` (a ball + probes), a sun map ``env.exr``, a
     NeRF capture of 4 flat views at ``res`` px (``data/``), one placements file per
@@ -374,16 +397,8 @@ def tiny_composition(tmp, res, placements=(("t", 0.2),)):
     from comgs_dr.lighting import envmap as em
     from comgs_dr.sops import occlusion as occ
     from comgs_dr.stages.compose import ComposeConfig, compose
-    from comgs_dr.surfels.io import save_ply
-    from comgs_dr.train.run import write_run_info
-    data = _nerf_folder(tmp / "data", res=res)
-    run = tmp / "scene_run"
-    write_run_info(run, data, "scene", 1, False)
-    save_ply(plane(n=20), str(run / "point_cloud.ply"))
-    p = ball((0, 0, 0), 0.3, (0.8, 0.2, 0.2), n=300)
-    (tmp / "a").mkdir()
-    save_ply(p, str(tmp / "a" / "point_cloud.ply"))
-    _probes_for(p, count=40).save(tmp / "a" / "probes.npz")
+    run = scene_run(tmp, res, 20)
+    object_run(tmp / "a", 0.3, (0.8, 0.2, 0.2), 40)
     em.write_exr(tmp / "env.exr", sun_map(16), "octahedral")
     for name, x in placements:
         write_placements(tmp / f"{name}.json",

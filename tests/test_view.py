@@ -18,25 +18,15 @@ A0, B0 = np.array([0.6, 0.0, 0.3]), np.array([-0.6, 0.0, 0.3])
 def make_two_ball_comp(root):
     """A composition (``stages.compose`` on a plane and two balls ``a``, ``b``, lit by one
     map) in ``root/comp``; returns that folder."""
-    from test_composite import _nerf_folder, _probes_for, ball, plane, sun_map
+    from test_composite import object_run, scene_run, sun_map
 
     from comgs_dr.core.similarity import Similarity, write_placements
     from comgs_dr.lighting import envmap as em
     from comgs_dr.sops import occlusion as occ
     from comgs_dr.stages.compose import ComposeConfig, compose
-    from comgs_dr.surfels.io import save_ply
-    from comgs_dr.train.run import write_run_info
-    data = _nerf_folder(root / "data", res=16)
-    run = root / "scene_run"
-    write_run_info(run, data, "scene", 1, False)
-    save_ply(plane(n=24), str(run / "point_cloud.ply"))
-    objects = {}
-    for name, albedo in (("a", (0.8, 0.2, 0.2)), ("b", (0.2, 0.3, 0.8))):
-        p = ball((0, 0, 0), 0.25, albedo, n=300)
-        (root / name).mkdir()
-        save_ply(p, str(root / name / "point_cloud.ply"))
-        _probes_for(p, count=30).save(root / name / "probes.npz")
-        objects[name] = root / name
+    run = scene_run(root, 16, 24)
+    objects = {name: object_run(root / name, 0.25, albedo, 30)
+               for name, albedo in (("a", (0.8, 0.2, 0.2)), ("b", (0.2, 0.3, 0.8)))}
     em.write_exr(root / "env.exr", sun_map(16), "octahedral")
     write_placements(root / "t.json", {"a": Similarity(1.0, np.eye(3), A0),
                                        "b": Similarity(1.0, np.eye(3), B0)})
@@ -186,21 +176,13 @@ def test_move_estimates_the_light_of_the_moved_object_only(tmp_path):
     """A composition whose light was estimated: a move estimates the moved object's light
     at its new centre (``estimate_light``, its files in env/<name>_estimate/) and keeps
     the other's map byte for byte."""
-    from test_composite import _nerf_folder, _probes_for, ball, plane
+    from test_composite import object_run, scene_run
 
     from comgs_dr.core.similarity import Similarity, write_placements
     from comgs_dr.sops import occlusion as occ
     from comgs_dr.stages.compose import ComposeConfig, compose
-    from comgs_dr.surfels.io import save_ply
-    from comgs_dr.train.run import write_run_info
-    data = _nerf_folder(tmp_path / "data", res=16)
-    run = tmp_path / "scene_run"
-    write_run_info(run, data, "scene", 1, False)
-    save_ply(plane(n=24), str(run / "point_cloud.ply"))
-    p = ball((0, 0, 0), 0.25, (0.8, 0.2, 0.2), n=300)
-    (tmp_path / "o").mkdir()
-    save_ply(p, str(tmp_path / "o" / "point_cloud.ply"))
-    _probes_for(p, count=30).save(tmp_path / "o" / "probes.npz")
+    run = scene_run(tmp_path, 16, 24)
+    object_run(tmp_path / "o", 0.25, (0.8, 0.2, 0.2), 30)
     write_placements(tmp_path / "t.json", {"a": Similarity(1.0, np.eye(3), A0),
                                            "b": Similarity(1.0, np.eye(3), B0)})
     sky = lambda pos, name: np.full((16, 32, 3), 0.5)                       # noqa: E731
