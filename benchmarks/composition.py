@@ -55,12 +55,16 @@ def main(argv=None):
     ap.add_argument("--decompose-iters", type=int, default=600)
     ap.add_argument("--shadow-probes", type=int, default=10000)
     ap.add_argument("--rays", type=int, default=256)
+    ap.add_argument("--variants", default=",".join(VARIANTS),
+                    help="render-comp variants to render (paste and sop always; trace is the "
+                         "slow one: leave it out for a quick look)")
     ap.add_argument("--estimate", action="store_true",
                     help="estimate the lighting at each placement instead of the true map")
     ap.add_argument("--known-object-light", action="store_true",
                     help="step 2 of each object under its capture's own map (decompose "
                          "--env-file), in obj_<name>_known/")
     a = ap.parse_args(argv)
+    variants = [v for v in VARIANTS if v in {"paste", "sop", *a.variants.split(",")}]
     w = a.work
     w.mkdir(parents=True, exist_ok=True)
     log = open(w / "log.txt", "a")
@@ -110,34 +114,36 @@ def main(argv=None):
     times["compose"] = run(cmd, log)
     edit = json.loads((comp / "edit.json").read_text())
     rows = {}
-    for v in VARIANTS:
+    for v in variants:
         run(["render-comp", comp, "--cameras", ds / "comp" / "transforms_test.json",
              "--variant", v, "--gt-dir", ds / "comp" / "gt", "--rays", a.rays, "--quiet"], log)
         rows[v] = json.loads((comp / f"metrics_{v}.json").read_text())
     print(f"\ncomposition on {ds} ({len(names)} objects: {', '.join(names)}; "
           f"{rows['sop']['frames']} frames at {rows['sop']['resolution']})")
     print(f"{'variant':<10}{'PSNR':>8}{'SSIM':>8}{'s/frame':>10}{'FPS':>8}")
-    for v in VARIANTS:
+    for v in variants:
         r = rows[v]
         print(f"{v:<10}{r['psnr']:>8.2f}{r['ssim']:>8.4f}{r['frame_seconds']:>10.3f}"
               f"{1 / r['frame_seconds']:>8.2f}")
-    if all("region" in rows[v] for v in VARIANTS):
+    if all("region" in rows[v] for v in variants):
         print(f"\nin the object+shadow region (eval.comp_region):\n{'variant':<10}{'PSNR':>8}"
               f"{'shadow':>8}{'truth':>8}{'depth':>7}{'area':>7}   object colour / truth")
-        for v in VARIANTS:
+        for v in variants:
             g = rows[v]["region"]
             col = ", ".join(f"{c:.2f}" for c in g.get("object_colour_ratio", []))
             print(f"{v:<10}{g['psnr_region']:>8.2f}{g.get('shadow_ratio', float('nan')):>8.3f}"
                   f"{g.get('shadow_ratio_truth', float('nan')):>8.3f}"
                   f"{g.get('shadow_depth', float('nan')):>7.2f}"
                   f"{g.get('shadow_depth_area', float('nan')):>7.2f}   {col}")
-    print(f"trace / sop frame time: {rows['trace']['frame_seconds'] / rows['sop']['frame_seconds']:.2f}x;"
-          f" sop - trace PSNR: {rows['sop']['psnr'] - rows['trace']['psnr']:+.2f} dB")
+    if "trace" in rows:
+        print(f"trace / sop frame time: "
+              f"{rows['trace']['frame_seconds'] / rows['sop']['frame_seconds']:.2f}x;"
+              f" sop - trace PSNR: {rows['sop']['psnr'] - rows['trace']['psnr']:+.2f} dB")
     t = edit["timings"]
     print(f"edit ({edit['probes']['shadow']} shadow probes, {edit['rays_per_probe']} rays each): "
           + ", ".join(f"{k} {t[k]:.1f} s" for k in ("lighting", "probe_placement",
                                                      "occlusion_tracing", "total")))
-    per = [(f["name"], {v: rows[v]["per_frame"][i]["psnr"] for v in VARIANTS})
+    per = [(f["name"], {v: rows[v]["per_frame"][i]["psnr"] for v in variants})
            for i, f in enumerate(rows["sop"]["per_frame"])]
     worse = [n for n, p in per if p["sop"] <= p["paste"]]
     print(f"sop better than paste on {len(per) - len(worse)}/{len(per)} frames"

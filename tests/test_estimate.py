@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from comgs_dr.core import colorspace, equirect
-from comgs_dr.lighting import backends, completion, envmap, hdr
+from comgs_dr.lighting import backends, clear_sky, completion, envmap, hdr
 from comgs_dr.stages.estimate_light import (
     EstimateConfig,
     backend_input,
@@ -82,9 +82,21 @@ def test_end_to_end_outputs(result, params):
     assert r["hdr"].shape == (H, W, 3) and r["hdr"].dtype == np.float32
     assert r["oct"].shape == (16, 16, 3) and np.isfinite(r["oct"]).all()
     assert np.isfinite(r["hdr"]).all() and r["hdr"].min() >= 0
-    assert r["hdr"].max() <= hdr.saturation_limit() + 1e-4
     assert sorted(r["ldrs"]) == [-5.0, -2.5, 0.0]
-    np.testing.assert_allclose(r["hdr"], hdr.fuse_brackets(r["ldrs"]), rtol=1e-6)
+    fused = hdr.fuse_brackets(r["ldrs"])
+    assert fused.max() <= hdr.saturation_limit() + 1e-4
+    # no sun from the shadows and 6 % of the sky seen: the fused map with its unseen sky
+    # raised by one factor, until the ground reflects at most max_ground_albedo of it
+    lift = r["meta"]["unseen_sky_lift"]
+    assert 1.0 < lift["lift"] <= clear_sky.MAX_LIFT
+    up = equirect.equirect_directions(H, W)[..., 2] > 0
+    unseen = (r["input"]["mask"] <= 0.5) & up
+    np.testing.assert_allclose(r["hdr"], np.where(unseen[..., None], fused * lift["lift"], fused),
+                               rtol=1e-5)
+    assert max(lift["implied_albedo_before"]) > lift["max_ground_albedo"]
+    _, _, after = clear_sky.ground_albedo_floor(r["hdr"], unseen, np.zeros(3), 0.0, 1.0)
+    assert max(after) == pytest.approx(lift["max_ground_albedo"], rel=1e-3) \
+        or lift["lift"] == clear_sky.MAX_LIFT
     assert r["hdr"].max() > 1.0                  # the random net's dark brackets add range
     assert 0.42 < r["coverage"] < 0.7                      # the ground + a panel
     assert r["meta"]["label"] == "indoor" and r["meta"]["evs"] == [0.0, -2.5, -5.0]
@@ -117,8 +129,8 @@ def test_end_to_end_outputs(result, params):
 
 def test_fill_backend_end_to_end_and_deterministic(params, result):
     scene = _scene(params)
-    cfg = EstimateConfig(light_head="none", **SMALL)
-    a = estimate_light(scene, POS, cfg, backends.FillBackend("push_pull"))
+    cfg = EstimateConfig(light_head="none", max_ground_albedo=0.0, **SMALL)   # no lift: the
+    a = estimate_light(scene, POS, cfg, backends.FillBackend("push_pull"))   # fill's own range
     b = estimate_light(scene, POS, cfg, backends.FillBackend("push_pull"))
     assert np.array_equal(a["hdr"], b["hdr"])
     # a fill cannot exceed the EV-0 white level; the traced inputs match the net run
@@ -254,8 +266,9 @@ def test_light_head_restores_clipped_power(params, tmp_path):
     path = lights.save_head(head, tmp_path / "head.pt")
     scene = _scene(params)
     fill = backends.FillBackend("push_pull")
-    off = estimate_light(scene, POS, EstimateConfig(light_head="none", **SMALL), fill)
-    on = estimate_light(scene, POS, EstimateConfig(light_head=str(path), **SMALL), fill)
+    nolift = dict(SMALL, max_ground_albedo=0.0)     # the head's change alone
+    off = estimate_light(scene, POS, EstimateConfig(light_head="none", **nolift), fill)
+    on = estimate_light(scene, POS, EstimateConfig(light_head=str(path), **nolift), fill)
     assert len(on["lobes"]) >= 1 and off["lobes"] == []
     regions = lights.clipped_regions(on["input"]["rgb"], on["input"]["mask"])
     gain = float(np.exp(np.log1p(np.exp(2.0))))

@@ -338,3 +338,27 @@ def test_the_sky_lift_is_capped_when_little_of_it_is_unseen():
     out, s, implied = clear_sky.ground_albedo_floor(rad, patch, np.zeros(3), 0.5, 0.5)
     assert implied.max() > 2.0 and s == clear_sky.MAX_LIFT
     np.testing.assert_allclose(out[patch], clear_sky.MAX_LIFT * rad[patch])
+
+
+def test_without_a_sun_the_unseen_sky_is_lifted_to_the_default_ceiling():
+    """No sun from the shadows (too low, overcast): the completion's unseen sky alone is
+    raised until E_down / E_up of the brightest channel is MAX_GROUND_ALBEDO; the observed
+    mask may come at the trace's resolution (resized nearest); seen pixels never change."""
+    from comgs_dr.core.equirect import equirect_directions, solid_angle_image
+    from comgs_dr.lighting import clear_sky
+    h, w = 32, 64
+    dirs = equirect_directions(h, w)
+    rad = np.where(dirs[..., 2:3] > 0, [0.1, 0.1, 0.12], [0.06, 0.045, 0.03])
+    observed = np.repeat(np.repeat(dirs[..., 2] < 0.3, 2, 0), 2, 1)        # [64, 128]
+    out, s, implied = clear_sky.lift_unseen_sky(rad, observed)
+    seen = dirs[..., 2] < 0.3
+    assert s > 1.0 and implied.max() > clear_sky.MAX_GROUND_ALBEDO
+    np.testing.assert_array_equal(out[seen], rad[seen])
+    np.testing.assert_allclose(out[~seen], s * rad[~seen])
+    sa = solid_angle_image(h, w)
+    e_up = np.einsum("hwc,hw->c", out, sa * np.maximum(dirs[..., 2], 0))
+    e_down = np.einsum("hwc,hw->c", out, sa * np.maximum(-dirs[..., 2], 0))
+    assert (e_down / e_up).max() == pytest.approx(clear_sky.MAX_GROUND_ALBEDO, rel=1e-6)
+    dim = np.where(dirs[..., 2:3] > 0, 1.0, 0.1) * np.ones(3)            # ground reflects 0.1
+    same, s1, _ = clear_sky.lift_unseen_sky(dim, observed)
+    assert s1 == 1.0 and (same == dim).all()

@@ -34,9 +34,10 @@ ESTIMATION_FLAGS = {
                            "--env"),
     "sky_turbidity": Spelling(help="that clear sky's turbidity, [1, 10]; 0: from the "
                               "shadows' sun/sky ratio; not with --env"),
-    "max_ground_albedo": Spelling(help="that unseen sky is raised until the ground below "
-                                  "reflects at most this of the light above (0: off); not "
-                                  "with --env"),
+    "max_ground_albedo": Spelling(help="the unseen sky (with that sun, or with no sun where "
+                                  "the capture barely saw the sky) is raised until the ground "
+                                  "below reflects at most this of the light above (0: off); "
+                                  "not with --env"),
     "weights": Spelling(metavar="W.pt", help="completion-net checkpoint of the estimation "
                         "(None: the shipped one; not with --env)"),
     "light_head": Spelling(metavar="HEAD.pt", help="light head of the estimation: a file, "

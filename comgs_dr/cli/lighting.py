@@ -53,9 +53,9 @@ ESTIMATE_FLAGS = {
                            "the capture did not see: clear (a clear sky for the sun at the "
                            "completion's irradiance, lighting.clear_sky) or the completion's "
                            "guess"),
-    "max_ground_albedo": Spelling(help="with that sun, the unseen sky is raised until the "
-                                  "ground below reflects at most this of the light above "
-                                  "(0: off)"),
+    "max_ground_albedo": Spelling(help="the unseen sky (with that sun, or with no sun where "
+                                  "the capture barely saw the sky) is raised until the ground "
+                                  "below reflects at most this of the light above (0: off)"),
     "sky_turbidity": Spelling(help="that clear sky's turbidity, [1, 10] (1.5 very clear ... "
                               "10 hazy); 0: the one whose sun/sky ratio is the shadows' k"),
 }

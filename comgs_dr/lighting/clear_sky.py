@@ -43,7 +43,9 @@ DEFAULT_TURBIDITY = 3.0     # a clear day (Hosek–Wilkie: 1 very clear … 10 h
 TURBIDITIES = (1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0)   # searched by k
 GROUND_ALBEDO = 0.2         # the model's ground albedo (its sky's brightening near the horizon)
 MIN_ELEVATION_DEG = 0.5     # the model needs the sun above the horizon
-MAX_GROUND_ALBEDO = 0.5     # E_down / E_up allowed before the unseen sky is raised
+MAX_GROUND_ALBEDO = 0.3     # E_down / E_up allowed before the unseen sky is raised: the
+                            # 13 shared real maps' own ratio (brightest channel) has median
+                            # 0.23, 11 of 13 ≤ 0.31 (benchmarks/ground_reflectance.py)
 MAX_LIFT = 4.0              # ... by at most this factor (a few unseen pixels would else
                             # become a fake bright light; the city map needed 3.14)
 
@@ -158,8 +160,10 @@ def ground_albedo_floor(radiance_eq, unseen, k_rgb, sun_elevation: float,
     the demo's scene without sky views 0.73, 0.46, 0.36 (truth 0.27, 0.21, 0.14). The
     unseen pixels (and with them the sun to be added, ``k_rgb`` × the sky's E_up at
     ``sun_elevation`` radians) are scaled by the least s that brings every channel to
-    ``max_albedo`` (0.5: natural grounds, soil, grass, asphalt, concrete, gravel, reflect
-    under half; fresh snow and white sand more, and are then lit too brightly); never
+    ``max_albedo`` (0.3: what real maps' surroundings reflect, median 0.23 over the 13
+    shared maps, 11 of them ≤ 0.31; grass, soil, asphalt and concrete reflect 0.1–0.35; a
+    sunlit courtyard (0.52), a bright interior floor (0.58), fresh snow or white sand are
+    then lit too brightly when their sky was unseen); never
     lowered, and raised by at most ``MAX_LIFT``: when little of the sky is unseen, scaling it
     further would turn those few pixels into a bright light nobody saw. Zero
     ``max_albedo``, nothing unseen or no light above: unchanged (s = 1)."""
@@ -181,3 +185,19 @@ def ground_albedo_floor(radiance_eq, unseen, k_rgb, sun_elevation: float,
     s = float(np.clip(need.max(), 1.0, MAX_LIFT))
     rad[unseen] *= s
     return rad, s, implied
+
+
+def lift_unseen_sky(radiance_eq, observed, max_albedo: float = MAX_GROUND_ALBEDO):
+    """(new equirect [H, W, 3] float64, the lift s, the implied albedo per channel before)
+    for a panorama that gets no sun from the shadows: its unseen sky (above the horizon and
+    not ``observed`` [h, w] bool, resized nearest to the map) raised by
+    :func:`ground_albedo_floor` without a sun (k = 0). The completion's level for a sky
+    nobody saw was 1.2–5.6× too dim on every outdoor scene measured (docs/composite.md),
+    also where the sun was too low for a usable shadow."""
+    rad = np.asarray(radiance_eq, np.float64)
+    h, w = rad.shape[:2]
+    obs = np.asarray(observed, bool)
+    if obs.shape != (h, w):
+        oh, ow = obs.shape
+        obs = obs[(np.arange(h) * oh) // h][:, (np.arange(w) * ow) // w]
+    return ground_albedo_floor(rad, ~obs, np.zeros(3), 0.0, max_albedo)

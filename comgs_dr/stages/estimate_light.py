@@ -49,7 +49,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core.equirect import coverage, equirect_directions, pixel_solid_angles
-from comgs_dr.lighting import backends, envmap, hdr, scene_label, sun_fit
+from comgs_dr.lighting import backends, clear_sky, envmap, hdr, scene_label, sun_fit
 from comgs_dr.lighting import lights as light_head
 from comgs_dr.lighting.lights import TRUST_BRACKETS
 from comgs_dr.lighting.backends import default_backend
@@ -115,9 +115,11 @@ class EstimateConfig:
     sky_turbidity: the clear sky's turbidity, in [1, 10] (1.5 very clear … 10 hazy), or 0
         (default): the one at which the sky model's sun/sky ratio is the shadows' k
         (``clear_sky.turbidity_for``: the shadows' contrast says how hazy the sky is).
-    max_ground_albedo: with that sun, the unseen sky is raised until the surroundings below
-        the horizon reflect at most this fraction of the light above (E_down / E_up per
-        channel, ``clear_sky.ground_albedo_floor``; default 0.5; 0: off).
+    max_ground_albedo: the unseen sky (with that sun, or where the capture saw under
+        ``hdr.SEEN_SKY_WARN`` of the upper hemisphere and no sun was added) is raised until
+        the surroundings below the horizon reflect at most this fraction of the light above
+        (E_down / E_up per channel, ``clear_sky.ground_albedo_floor``; default
+        ``clear_sky.MAX_GROUND_ALBEDO`` 0.3; 0: off).
     """
     width: int = 1024
     height: int = 512
@@ -140,7 +142,7 @@ class EstimateConfig:
     sun_radius_deg: float = 1.0
     unseen_sky: str = "clear"
     sky_turbidity: float = 0.0
-    max_ground_albedo: float = 0.5
+    max_ground_albedo: float = clear_sky.MAX_GROUND_ALBEDO
 
     def validate(self) -> None:
         if self.label not in scene_label.LABEL_CHOICES:
@@ -306,6 +308,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     with _timed(timings, "sun_fit"):
         radiance, sun = _sun_from_shadows(scene, space, radiance, mask > 0.5, cfg,
                                           sky["seen"] < hdr.SEEN_SKY_WARN, ldr=rgb)
+        radiance, lift = _unseen_sky_level(radiance, mask > 0.5, sky, sun, cfg)
     with _timed(timings, "octahedral"):
         oct_map = envmap.equirect_to_oct_np(radiance, int(cfg.oct_res)).astype(np.float32)
     with _timed(timings, "lights"):
@@ -314,6 +317,7 @@ def estimate_light(scene_or_ply_path, position, cfg: EstimateConfig | None = Non
     meta = _meta(cfg, source=source, trace=trace, label=label, p_outdoor=p_outdoor, evs=evs,
                  backend=backend, space=space, coverage=cov, sky=sky, n_bad=n_bad, head=head,
                  block=f, sun=sun, regions=regions)
+    meta["unseen_sky_lift"] = lift
     return {"hdr": radiance, "oct": oct_map, "ldrs": ldrs,
             "input": {"rgb": rgb, "normal": normal, "mask": mask},
             "lights": lights, "lobes": lobes, "light_regions": regions, "coverage": cov,
@@ -549,6 +553,25 @@ def _sun_from_shadows(scene, space: str, radiance, observed, cfg: EstimateConfig
     return np.asarray(radiance, np.float32), rec
 
 
+def _unseen_sky_level(radiance, observed, sky: dict, sun, cfg: EstimateConfig):
+    """(radiance, record or None): where the capture saw little of the upper hemisphere
+    (below ``hdr.SEEN_SKY_WARN``) and no sun was added from the shadows (``add_sun`` lifts
+    its own sky), the completion's unseen sky raised until the ground reflects at most
+    ``cfg.max_ground_albedo`` of the light above (``clear_sky.lift_unseen_sky``)."""
+    added = sun is not None and str(sun.get("action", "")).startswith("added")
+    if cfg.max_ground_albedo <= 0 or added or sky["seen"] >= hdr.SEEN_SKY_WARN:
+        return radiance, None
+    out, s, implied = clear_sky.lift_unseen_sky(radiance, observed, float(cfg.max_ground_albedo))
+    rec = {"lift": s, "implied_albedo_before": [float(a) for a in implied],
+           "max_ground_albedo": float(cfg.max_ground_albedo)}
+    if s > 1.0:
+        log.warning("estimate_light: the unseen sky raised %.2fx: below it the ground reflected "
+                    "%s of the light above (at most %.2f allowed, --max-ground-albedo)%s", s,
+                    ", ".join(f"{a:.2f}" for a in implied), cfg.max_ground_albedo,
+                    " (the most it is raised)" if s >= clear_sky.MAX_LIFT else "")
+    return np.asarray(out, np.float32), rec
+
+
 #: EV-0 display value from which a seen sun counts as clipped (its power then guessed)
 SUN_CLIPPED = 0.98
 
@@ -768,7 +791,7 @@ class PlacementEstimateConfig:
     sun_from_shadows: "auto" (default) or "off".
     unseen_sky: "clear" (default) or "completion" (``EstimateConfig.unseen_sky``).
     sky_turbidity: 0 (default: from the shadows) or in [1, 10] (``EstimateConfig``).
-    max_ground_albedo: in [0, 1] (default 0.5; 0: off; ``EstimateConfig``).
+    max_ground_albedo: in [0, 1] (default 0.3; 0: off; ``EstimateConfig``).
     weights: completion-net checkpoint (None: the shipped one, its hole averaged with the SH
         fill, ``backends.default_backend``).
     """
@@ -778,7 +801,7 @@ class PlacementEstimateConfig:
     sun_from_shadows: str = "auto"
     unseen_sky: str = "clear"
     sky_turbidity: float = 0.0
-    max_ground_albedo: float = 0.5
+    max_ground_albedo: float = clear_sky.MAX_GROUND_ALBEDO
     weights: str | None = None
 
 

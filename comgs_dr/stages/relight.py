@@ -11,7 +11,9 @@ Metrics (per view, averaged), when the dataset holds the ground truth that
 * relighting PSNR/SSIM vs ``test_relight/<map stem>/r_<i>.exr`` (display sRGB, composited
   over the run's background like the training photos);
 * albedo PSNR after per-channel median scale alignment (TensoIR protocol: s_c =
-  median(gt_c / pred_c) over covered pixels), computed on sRGB-encoded albedo;
+  median(gt_c / pred_c) over covered pixels), computed on sRGB-encoded albedo, and the
+  albedo's colour bias before it: ``albedo_ratio_{r,g,b}`` = 1 / s_c (1: right; unequal
+  channels: the light/albedo split moved colour between them);
 * normal MAE (degrees) of the shading normals vs ``r_<i>_normal.exr``.
 
 Beside each view's PNG an EXR (:func:`material_layers`) holds the linear RGBA render and the
@@ -300,6 +302,8 @@ def _gbuffer_scores(fr: dict, base: Path, pts, geo) -> dict:
         al, s = align_albedo(pa, ga[..., :3], mask)
         m3 = mask[..., None]
         rec["albedo_psnr"] = M.psnr(_display(al) * m3, _display(ga[..., :3]) * m3)
+        if (mask & (pa.min(-1) > 1e-4)).sum() >= 10:      # align_albedo's own condition
+            rec.update({f"albedo_ratio_{c}": float(1.0 / s[i]) for i, c in enumerate("rgb")})
     if "normal_path" in fr and (base / fr["normal_path"]).exists():
         gn = exr.read_image(base / fr["normal_path"]).astype(np.float64)
         mask = (gn[..., 3] > 0.99) & (W > 0.5) if gn.shape[-1] > 3 else (W > 0.5)
