@@ -47,6 +47,9 @@ def main(argv=None):
     ap.add_argument("--res", type=int, default=96, help="side of the captures")
     ap.add_argument("--comp-res", type=int, default=None,
                     help="side of the composites (default --res; e.g. --res 128 --comp-res 256)")
+    ap.add_argument("--ground-tint", type=float, nargs=3, default=None,
+                    help="sRGB multipliers of the ground's texture (default: the dataset's "
+                         "warm grey; 1.25 1.25 1.2: a pale ground)")
     ap.add_argument("--sky-views", type=int, default=None,
                     help="scene views over the horizon (default: the dataset's, 0: none)")
     ap.add_argument("--test-views", type=int, default=8)
@@ -79,6 +82,8 @@ def main(argv=None):
             cmd += ["--comp-res", a.comp_res]
         if a.sky_views is not None:
             cmd += ["--sky-views", a.sky_views]
+        if a.ground_tint is not None:
+            cmd += ["--ground-tint", *a.ground_tint]
         times["dataset"] = run(cmd, log)
     meta = json.loads((ds / "composition.json").read_text())
     names = list(meta["objects"])

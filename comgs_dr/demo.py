@@ -56,7 +56,9 @@ class DemoConfig:
 
     Sizes in pixels, angles in degrees. The scene is captured from ``scene_views`` views
     looking down at the ground (``scene_elevation_deg``) and ``sky_views`` from eye height
-    over the horizon (``sky_pitch_deg``), which see the sky and the sun; the object from
+    over the horizon (``sky_pitch_deg``), which see the sky and the sun (default none: real
+    captures rarely look at the sun, so the light comes from the scene's shadows and the
+    ground, ``estimate_light``; 12 gives the capture that saw it); the object from
     ``object_views``; ``test_views`` composites are scored. ``spp``: samples per pixel of the
     path-traced ground truth; ``rays``: S_r of the composition renders (step 2 uses at most
     64). ``object_light``: ``learnt`` (step 2 learns the object's capture light, the general
@@ -74,7 +76,10 @@ class DemoConfig:
     spp: int = 32
     sfm_points: int = 5000
     scene_elevation_deg: tuple = (30.0, 70.0)   # views looking down at the ground
-    sky_views: int = 12                         # capture views over the horizon (sky and sun)
+    sky_views: int = 0                          # capture views over the horizon (sky and sun):
+                                                # 0, as most real captures (the sun from the
+                                                # shadows, the sky's level from the ground); 12:
+                                                # the second case, a capture that saw the sun
     sky_pitch_deg: tuple = (10.0, 40.0)
     scene_env_resolution: int = 128             # texels per side of step 1's sky
     sun_elevation_deg: float = 25.0

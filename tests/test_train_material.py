@@ -160,8 +160,8 @@ def test_a_known_capture_light_is_kept_and_resolves_the_colour(tiny_run, tmp_pat
     assert MaterialTrainer(run, tmp_path / "m0b", _cfg(env_file=str(sky), sampling="uniform"),
                            progress=False).sampling == "uniform"      # an explicit choice stays
     learnt = MaterialTrainer(run, tmp_path / "m0c", _cfg(), progress=False)
-    assert learnt.sampling == "uniform" and learnt.lambda_smooth == 0.0
-    assert tr.lambda_smooth == 0.1                  # auto: the smoothness under a known light
+    assert learnt.sampling == "uniform" and learnt.lambda_smooth == 0.1   # auto: on for
+    assert tr.lambda_smooth == 0.1                  # a learnt and a known light alike
     assert MaterialTrainer(run, tmp_path / "m0d", _cfg(env_file=str(sky), lambda_smooth=0.0),
                            progress=False).lambda_smooth == 0.0
     out = run / "mat_known"

@@ -109,6 +109,9 @@ COMPOSITION_FLAGS = {
                              "objects, path-traced from there; where `compose` estimates the "
                              "lighting): the reference of `comgs compare-light`; 0: none"),
     "ground_half": Spelling(metavar="H", help="half side of the square ground"),
+    "ground_tint": Spelling(nargs=3, metavar="T", help="sRGB multipliers of the ground's gravel "
+                            "texture, clipped to 1 (1.25 1.25 1.2: a pale, sand- or "
+                            "concrete-like ground)"),
     "spp": Spelling(metavar="S", help="samples per pixel of training views (test views and "
                     "composites: twice as many unless --spp-test)"),
     "sfm_points": Spelling(("--points",), metavar="N", help="SfM-like points in "
@@ -243,8 +246,9 @@ DEMO_FLAGS = {
                              "light (learnt) or takes the known studio map (known: "
                              "decompose --env-file)"),
     "sky_views": Spelling(metavar="N", help="scene capture views over the horizon that see "
-                          "the sky and the sun (0: a capture that never looks at the sun, "
-                          "whose lighting must take the sun from the scene's shadows)"),
+                          "the sky and the sun (0, the default: a capture that never looks at "
+                          "the sun, whose lighting takes the sun from the scene's shadows; 12: "
+                          "one that saw it)"),
 }
 
 

@@ -57,6 +57,7 @@ SHARED_OBJECTS = {
 PATH_OBJECT = {"texture": "auto", "base_color": (0.6, 0.6, 0.6), "roughness": 0.5, "metallic": 0.0}
 GROUND_HALF = 25.0           # ground: a 50 x 50 square, top at z = 0
 GROUND_TILE = 2.0            # one texture tile per 2 x 2 units
+GROUND_TINT = (0.85, 0.75, 0.6)   # sRGB multipliers of the gravel: a warm grey ground
 MESH_SUFFIXES = (".obj", ".ply")
 PROBE_MAX_HEIGHT = 4096      # rows of a placement probe (= data.placement_probe.MAX_HEIGHT)
 
@@ -109,6 +110,9 @@ class CompositionDatasetConfig:
     scene_elevation_deg: tuple[float, float] = (30.0, 70.0)
     #: half side of the square ground; beyond it low cameras see the map's own horizon
     ground_half: float = GROUND_HALF
+    #: sRGB multipliers of the ground's gravel texture (``write_textures``): a brighter
+    #: ground (a stress case for lighting that infers the sky from what the ground reflects)
+    ground_tint: tuple[float, float, float] = GROUND_TINT
     #: extra training views from eye height that look out over the horizon (a capture that
     #: turns around): they see the sky and the sun, which step 1's background learns
     sky_views: int = 0
@@ -140,6 +144,11 @@ class CompositionDatasetConfig:
                      "ground_half"):
             if not float(v := getattr(self, name)) > 0:
                 raise ValueError(f"CompositionDatasetConfig.{name} must be > 0 (got {v})")
+        tint = np.asarray(self.ground_tint, np.float64)
+        if tint.shape != (3,) or not (np.isfinite(tint).all() and (tint > 0).all()):
+            raise ValueError(f"CompositionDatasetConfig.ground_tint must be 3 finite values "
+                             f"> 0, got {self.ground_tint!r}")
+        self.ground_tint = tuple(float(t) for t in tint)
         bad = set(self.path_material or {}) - set(PATH_OBJECT)
         if bad:
             raise ValueError(f"CompositionDatasetConfig.path_material: unknown keys {sorted(bad)} "
@@ -188,16 +197,19 @@ def sun_direction(bitmap) -> np.ndarray:
     return np.array([np.sin(th) * np.cos(phi), np.sin(th) * np.sin(phi), np.cos(th)])
 
 
-def write_textures(folder: Path) -> dict[str, Path]:
-    """Photo textures of scikit-image as sRGB PNGs: tinted gravel (ground), brick (wall)."""
+def write_textures(folder: Path, ground_tint=GROUND_TINT) -> dict[str, Path]:
+    """Photo textures of scikit-image as sRGB PNGs: tinted gravel (ground), brick (wall).
+    ``ground_tint``: sRGB multipliers of the gravel's (0.25 + 0.7 g) pattern, clipped to 1
+    (the default's linear mean is about 0.2; (1.25, 1.25, 1.2) gives a pale, sand- or
+    concrete-like ground near 0.45)."""
     from skimage import data
     folder.mkdir(parents=True, exist_ok=True)
     out = {}
-    for key, img, tint in (("ground", data.gravel(), (0.85, 0.75, 0.6)),
+    for key, img, tint in (("ground", data.gravel(), tuple(ground_tint)),
                            ("wall", data.brick(), (0.85, 0.5, 0.4))):
         g = img.astype(np.float32)[..., None] / 255.0                    # [H, W, 1]
         out[key] = folder / f"{key}.png"
-        write_png8(out[key], (0.25 + 0.7 * g) * np.array(tint))
+        write_png8(out[key], np.clip((0.25 + 0.7 * g) * np.array(tint), 0.0, 1.0))
     return out
 
 
@@ -360,7 +372,7 @@ def make_composition_dataset(cfg: CompositionDatasetConfig, progress: bool = Tru
     out, spp_test = Path(cfg.out_dir), int(cfg.spp_test or 2 * cfg.spp)
     rng = np.random.default_rng(cfg.seed)
     geo = _arrangement(cfg, src, rng)
-    textures = write_textures(out / "assets")
+    textures = write_textures(out / "assets", cfg.ground_tint)
     seconds = {}
     t = time.perf_counter()
     empty = _render_scene(cfg, src, geo, textures, rng, out, spp_test, progress)

@@ -91,7 +91,7 @@ class MaterialConfig:
                                         # the paper): albedo and light colour are ambiguous
     lambda_smooth: float | None = None  # edge-aware material smoothness over the surfels'
                                         # neighbours (train.material_smoothness; not in the
-                                        # paper); None: 0.1 under a known env_file, else 0
+                                        # paper); None: SMOOTH_DEFAULT 0.1, learnt or known light
     smooth_k: int = 8
     smooth_sigma: float = 0.1           # step-1 colour difference that unties two neighbours
     init_albedo: float = 0.5
@@ -126,7 +126,7 @@ class MaterialConfig:
 
 
 CKPT_FORMAT = "comgs_dr.material_checkpoint/2"
-SMOOTH_KNOWN_LIGHT = 0.1       # lambda_smooth's default under a known capture light
+SMOOTH_DEFAULT = 0.1           # lambda_smooth's default (docs/composite.md, "Sparkles")
 MAT_KEYS = ("surfels.albedo", "surfels.roughness", "surfels.metallic")
 ENV_KEY, SOPS_KEY = "env.theta", "integrator.probe_data"
 
@@ -176,11 +176,10 @@ class MaterialTrainer(TrainerBase):
         self.sampling = (("mis" if cfg.env_file is not None else "uniform")
                          if cfg.sampling == "auto" else cfg.sampling)
         self._pairs = None
-        # the smoothness prior by default only under a known light: there the light is
-        # fixed, so neighbours that looked alike in step 1 share their albedo; under a
-        # learnt light the albedo/light split is ambiguous and the prior cannot resolve it
-        self.lambda_smooth = (SMOOTH_KNOWN_LIGHT if cfg.env_file is not None else 0.0) \
-            if cfg.lambda_smooth is None else cfg.lambda_smooth
+        # the smoothness prior by default under a known and a learnt light: without it a
+        # dielectric's surfels come out partly metallic with scattered roughness, which the
+        # relit object shows as sparkles (it cannot resolve the learnt light's colour split)
+        self.lambda_smooth = SMOOTH_DEFAULT if cfg.lambda_smooth is None else cfg.lambda_smooth
         if self.lambda_smooth > 0:
             i, j, w = pairs_from_params(params, k=cfg.smooth_k, sigma=cfg.smooth_sigma)
             self._pairs = (mi.UInt32(i), mi.UInt32(j), mi.Float(w))
