@@ -362,3 +362,34 @@ def test_without_a_sun_the_unseen_sky_is_lifted_to_the_default_ceiling():
     dim = np.where(dirs[..., 2:3] > 0, 1.0, 0.1) * np.ones(3)            # ground reflects 0.1
     same, s1, _ = clear_sky.lift_unseen_sky(dim, observed)
     assert s1 == 1.0 and (same == dim).all()
+
+
+def test_a_rival_is_scored_without_the_best_shadows_receivers():
+    """A direction whose long shadow takes in a quarter of the true shadow borrows its
+    darkening (raw z well above 0); scored without the true shadow's receivers, as
+    ``_Fitter.rival`` does, it keeps only its own (here: none, noise)."""
+    from comgs_dr.lighting import sun_fit as S
+    rng = np.random.default_rng(0)
+    g = np.linspace(0.0, 1.0, 40)
+    x = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    x = np.concatenate([x, np.zeros((len(x), 1))], 1)
+    n = np.tile([0.0, 0.0, 1.0], (len(x), 1))
+    r = np.linalg.norm(x[:, :2] - 0.5, axis=1)
+    disc = r < 0.12                                                  # the true shadow
+    corner = (x[:, 0] < 0.15) & (x[:, 1] < 0.15)                     # the rival's own shadow:
+    band = ((r > 0.095) & disc & (x[:, 0] > 0.5)) | corner           # nothing darker there, and
+                                                                     # the true one's rim
+    L = np.exp(rng.normal(0.0, 0.1, len(x)))[:, None] * np.where(disc, 0.6, 1.0)[:, None]
+    L = np.repeat(L, 3, 1)
+    true_d, rival_d = np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.6, 0.8])
+    vis = {tuple(np.round(true_d, 6)): np.where(disc, 0.0, 1.0),
+           tuple(np.round(rival_d, 6)): np.where(band, 0.0, 1.0)}
+    f = S._Fitter(x, n, L, lambda d: vis[tuple(np.round(d, 6))], S.SunFitConfig())
+    z, V = f.score(true_d)
+    zr_raw, Vr = f.score(rival_d)
+    assert S._overlap(Vr < 0.5, V < 0.5) < S.RIVAL_OVERLAP
+    assert zr_raw >= 3.0 and z > zr_raw
+    # a best sun only just strong enough for the raw rival (rivals below half the needed z
+    # are not scored): without the borrowed receivers the rival keeps only its corner's
+    # noise (raw 4.8 -> 2.4 here), and the best sun passes the rival test
+    assert f.rival(S.RIVAL_RATIO * zr_raw, V) < 0.6 * zr_raw

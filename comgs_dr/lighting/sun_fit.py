@@ -30,7 +30,8 @@ surfel wider than the true one).
 Usable or not (``SunFit.usable`` and ``reason``): the best z must reach ``MIN_Z`` and
 ``RIVAL_RATIO`` × the best z of the directions whose shadows share less than ``RIVAL_OVERLAP``
 of the smaller one with its own (another explanation of the darkening, not the same shadow
-stretched or moved), and its
+stretched or moved), each counted without the best shadow's receivers (``_Fitter.rival``),
+and its
 shadow cover between ``MIN_SHADOWED`` and ``MAX_SHADOWED`` of the receivers. A scene with no
 cast shadow (overcast, indoor without a dominant light) or no shadow caster in view gives
 no usable fit, and nothing is added to the light.
@@ -207,6 +208,25 @@ class _Fitter:
             self.cache[key] = (z, V)
         return self.cache[key]
 
+    def rival(self, z: float, V) -> float:
+        """The best z of another explanation of the darkening than the shadow ``V`` of
+        z-score ``z``: over the scored directions whose shadows share less than
+        ``RIVAL_OVERLAP`` with ``V``, each scored without the receivers in ``V``'s shadow
+        (neither dark nor lit for it). A grazing direction whose long shadow takes in part
+        of the true one borrows that shadow's darkening; counted without it, it must
+        darken receivers of its own (the demo's scene: a 4° direction shading 48 % of the
+        ground, z 7.8 with the true shadow's receivers, against the true sun's 10.7)."""
+        floor = 0.5 * z / RIVAL_RATIO            # rivals far below cannot decide the test
+        own = V < 0.5
+        best = 0.0
+        for key, (zr, Vr) in self.cache.items():
+            if zr < floor or _overlap(Vr < 0.5, own) >= RIVAL_OVERLAP:
+                continue
+            c, _, on_ground = self.contrasts(np.where(own, 0.5, Vr), self.n @ np.array(key),
+                                             with_kind=True)
+            best = max(best, sum(_z_score(c[on_ground == g, 0]) for g in (True, False)))
+        return best
+
     def k_rgb(self, d, V):
         """k per channel from the median contrast of the up-facing receivers in the shadow's
         core (:meth:`core`): log(1 + k cos) = median log ratio (a wall sees less sky than
@@ -292,8 +312,7 @@ def fit_sun(x, n, L, visibility, cfg: SunFitConfig | None = None, progress=None,
     d = _plateau_direction(f.cache)
     z, V = f.score(d)
     shadowed = float(np.mean((V < 0.5) & (f.n @ d > 0)))
-    rival = max([v[0] for v in f.cache.values()
-                 if _overlap(v[1] < 0.5, V < 0.5) < RIVAL_OVERLAP], default=0.0)
+    rival = f.rival(z, V)
     if z < MIN_Z or z < RIVAL_RATIO * max(rival, 0.0):
         usable, reason = False, (f"no usable cast shadow: the best sun darkens its shadowed "
                                  f"receivers with z = {z:.1f}, the best other shadow "
