@@ -98,3 +98,13 @@ def equirect_directions(h: int, w: int) -> np.ndarray:
 def solid_angle_image(h: int, w: int) -> np.ndarray:
     """[h, w] solid angle of every equirect pixel (sums to 4π)."""
     return np.broadcast_to(pixel_solid_angles(h, w), (h, w))
+
+
+def resize_mask(mask, h: int, w: int) -> np.ndarray:
+    """Nearest-neighbour resize of a [h', w'] bool mask (a traced panorama's observed
+    pixels) to the [h, w] of a map built at another resolution."""
+    mask = np.asarray(mask, bool)
+    if mask.shape != (h, w):
+        oh, ow = mask.shape
+        mask = mask[(np.arange(h) * oh) // h][:, (np.arange(w) * ow) // w]
+    return mask

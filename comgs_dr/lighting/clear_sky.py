@@ -37,7 +37,7 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core.colorspace import LUMA
-from comgs_dr.core.equirect import equirect_directions, solid_angle_image
+from comgs_dr.core.equirect import equirect_directions, resize_mask, solid_angle_image
 
 DEFAULT_TURBIDITY = 3.0     # a clear day (Hosek–Wilkie: 1 very clear … 10 hazy)
 TURBIDITIES = (1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0)   # searched by k
@@ -195,9 +195,5 @@ def lift_unseen_sky(radiance_eq, observed, max_albedo: float = MAX_GROUND_ALBEDO
     nobody saw was 1.2–5.6× too dim on every outdoor scene measured (docs/composite.md),
     also where the sun was too low for a usable shadow."""
     rad = np.asarray(radiance_eq, np.float64)
-    h, w = rad.shape[:2]
-    obs = np.asarray(observed, bool)
-    if obs.shape != (h, w):
-        oh, ow = obs.shape
-        obs = obs[(np.arange(h) * oh) // h][:, (np.arange(w) * ow) // w]
+    obs = resize_mask(observed, *rad.shape[:2])
     return ground_albedo_floor(rad, ~obs, np.zeros(3), 0.0, max_albedo)

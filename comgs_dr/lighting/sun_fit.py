@@ -47,7 +47,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from comgs_dr.core.colorspace import srgb_decode
-from comgs_dr.core.equirect import equirect_directions, solid_angle_image
+from comgs_dr.core.equirect import equirect_directions, resize_mask, solid_angle_image
 from comgs_dr.core.hostarray import to_jit
 from comgs_dr.lighting import clear_sky
 from comgs_dr.sops.occlusion import plane_normals
@@ -417,7 +417,7 @@ def add_sun(radiance_eq: np.ndarray, observed: np.ndarray, fit: SunFit,
     E(up)."""
     rad = np.array(radiance_eq, np.float64)
     h, w = rad.shape[:2]
-    observed = _resize_mask(observed, h, w)
+    observed = resize_mask(observed, h, w)
     dirs = equirect_directions(h, w)
     cosd = dirs @ fit.direction
     disk = cosd >= np.cos(np.radians(max(radius_deg, 1e-3)))
@@ -470,7 +470,7 @@ def seen_sun(radiance_eq: np.ndarray, observed: np.ndarray, near: np.ndarray,
     elevations (a shadow that ends on a wall); a sun in view fixes it."""
     rad = np.asarray(radiance_eq, np.float64)
     h, w = rad.shape[:2]
-    observed = _resize_mask(observed, h, w)
+    observed = resize_mask(observed, h, w)
     dirs = equirect_directions(h, w)
     sky = observed & (dirs[..., 2] > 0)
     if not sky.any():
@@ -520,15 +520,6 @@ def rescale_seen_sun(radiance_eq: np.ndarray, fit: SunFit, radius_deg: float = 8
     return rad.astype(np.float32), (f"rescaled the seen sun to the shadows' E_sun/E_up "
                                     f"{fit.k:.2f} (k; gain per channel "
                                     f"{', '.join(f'{g:.2f}' for g in gain)})")
-
-
-def _resize_mask(mask, h: int, w: int) -> np.ndarray:
-    """Nearest-neighbour resize of a [h', w'] bool mask to [h, w]."""
-    mask = np.asarray(mask, bool)
-    if mask.shape != (h, w):
-        oh, ow = mask.shape
-        mask = mask[(np.arange(h) * oh) // h][:, (np.arange(w) * ow) // w]
-    return mask
 
 
 def fitted_normals(means, normals, opacity, neighbours: int = 8, radius_spacings: float = 3.0):
