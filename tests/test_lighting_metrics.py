@@ -234,3 +234,21 @@ class TestSpheres:
         est, _ = lm.render_spheres(np.full((32, 64, 3), 0.2), size=24)
         res = lm.sphere_metrics(est, gt, mask)
         assert all(np.isfinite(v) for d in res.values() for v in d.values())
+
+
+def test_irradiance_contrast_flat_map_and_a_sun():
+    """1 for a flat light; a small bright source on a dim sky: the facing / the opposite
+    irradiance, (π·L_sky + E_sun) / (π·L_sky) by hand."""
+    from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
+    from comgs_dr.eval.lighting_metrics import irradiance_contrast
+    flat = np.full((32, 64, 3), 0.7)
+    assert irradiance_contrast(flat, normals=400) == pytest.approx(1.0, abs=0.02)
+    sun = flat * 0 + 0.1
+    d = equirect_directions(32, 64)
+    disk = d @ np.array([0.0, 0.0, 1.0]) > np.cos(np.radians(12.0))
+    sun[disk] = 50.0
+    e_sun = 50.0 * (pixel_solid_angles(32, 64) * d[..., 2])[disk].sum()
+    want = (np.pi * 0.1 + e_sun) / (np.pi * 0.1)
+    assert irradiance_contrast(sun, normals=400) == pytest.approx(want, rel=0.1)
+    with pytest.raises(ValueError, match="NaN"):
+        irradiance_contrast(np.full((8, 16, 3), np.nan))

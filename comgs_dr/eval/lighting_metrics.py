@@ -363,6 +363,21 @@ def irradiance(env, normal) -> float:
     return float((lum * cos * pixel_solid_angles(h, w)).sum())
 
 
+def irradiance_contrast(env, normals: int = 200) -> float:
+    """max / min of the luminance irradiance of a linear equirect map over ``normals``
+    near-uniform directions (a Fibonacci sphere): 1 for a flat light; how much the light's
+    direction shades an object (a studio's key light: 13.7 for ``blender_studio``)."""
+    env = _check_map(env, "irradiance_contrast")
+    h, w = env.shape[:2]
+    i = np.arange(normals) + 0.5
+    z, phi = 1.0 - 2.0 * i / normals, np.pi * (1.0 + 5 ** 0.5) * i
+    r = np.sqrt(1.0 - z ** 2)
+    n = np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
+    power = ((env @ LUMA) * pixel_solid_angles(h, w)).reshape(-1)
+    e = np.maximum(n @ equirect_directions(h, w).reshape(-1, 3).T, 0.0) @ power
+    return float(e.max() / max(e.min(), 1e-12))
+
+
 def at_coarser(est, gt) -> tuple:
     """(est, gt) equirect maps with the finer one area-averaged to the coarser one's size, as
     ``compare-light`` compares and shows them (a coarse truth is not upsampled)."""

@@ -55,8 +55,10 @@ from comgs_dr.train.run import load_run_dataset, read_run_info
 class MaterialConfig:
     """Step-2 settings (``comgs decompose``: every scalar field is a flag, ``--lr-env``).
 
-    Defaults follow the paper's sec. 4.1 where it gives one (2k iterations, a 256² map,
-    5k probes of 16², offset 1 % of the object size). Loss weights: L = L_pbr +
+    Defaults follow the paper's sec. 4.1 where it gives one (2k iterations, a 256² map
+    when the capture's map is given, 5k probes of 16², offset 1 % of the object size); a
+    learnt map is 32² at lr 0.05 (``LEARNT_ENV_RES``: the paper's 256² at 0.01 stayed flat
+    and left the shading in the albedo). Loss weights: L = L_pbr +
     lambda_lam·L_lam + lambda_sops·L_sops (module docstring), plus the white-light and
     smoothness priors (not in the paper). Learning rates per Adam step; lengths as
     fractions of the object size; times in seconds.
@@ -66,7 +68,8 @@ class MaterialConfig:
     rays: int = 128                     # S_r
     sampling: str = "auto"              # auto: uniform (the paper) while the map is learnt,
                                         # mis under a known env_file (its table fixed)
-    env_res: int = 256                  # sec. 4.1: 256²
+    env_res: int | None = None          # None: 256² (sec. 4.1) for a known env_file,
+                                        # LEARNT_ENV_RES for a learnt map
     env_init: float = 0.5               # initial constant radiance
     env_file: str | None = None         # the capture's light when it is known (an HDRI shot
                                         # on set, a synthetic capture's map): kept fixed
@@ -81,7 +84,7 @@ class MaterialConfig:
     indirect: bool = True
     trace_hits: int = 32
     trace_offset: float = 0.01          # × object size: visibility-ray origin offset
-    lr_env: float = 0.01                # sec. 4.1
+    lr_env: float = 0.05                # sec. 4.1: 0.01 over 2k iterations; LEARNT_ENV_RES
     lr_material: float = 0.01
     lr_sops: float = 0.001
     lambda_lam: float = 0.001
@@ -108,6 +111,8 @@ class MaterialConfig:
     time_limit_s: float | None = None
 
     def __post_init__(self):
+        if self.env_res is not None and int(self.env_res) < 2:
+            raise ValueError(f"MaterialConfig.env_res must be ≥ 2, got {self.env_res!r}")
         if self.visibility not in KINDS:
             raise ValueError(f"MaterialConfig.visibility must be sops, trace or none, got "
                              f"{self.visibility!r}")
@@ -127,6 +132,23 @@ class MaterialConfig:
 
 CKPT_FORMAT = "comgs_dr.material_checkpoint/2"
 SMOOTH_DEFAULT = 0.1           # lambda_smooth's default (docs/composite.md, "Sparkles")
+# A learnt capture light must take the shading's direction before the albedo does. Each
+# surfel's albedo is its own Adam variable and explains its pixels' brightness within a few
+# steps; the shared map only gets what is left. With the paper's 256² map at lr 0.01 and our
+# 300 iterations (the paper: 2k), the learnt studio stayed flat (irradiance max/min over
+# normals 1.33 against the true map's 13.7) and the albedo took the shading (its log
+# luminance 1.35× the step-1 colour's): a pale, blotchy relit object. A 32² map at lr 0.05
+# learns the light's direction (docs/composite.md, "The object's blotches").
+LEARNT_ENV_RES = 32
+KNOWN_ENV_RES = 256            # sec. 4.1: a given map keeps its softboxes
+
+
+def env_resolution(cfg: MaterialConfig) -> int:
+    """The map's texels per side: ``cfg.env_res``, or (None) ``KNOWN_ENV_RES`` for a given
+    ``env_file`` and ``LEARNT_ENV_RES`` for a learnt map."""
+    if cfg.env_res is not None:
+        return int(cfg.env_res)
+    return KNOWN_ENV_RES if cfg.env_file is not None else LEARNT_ENV_RES
 MAT_KEYS = ("surfels.albedo", "surfels.roughness", "surfels.metallic")
 ENV_KEY, SOPS_KEY = "env.theta", "integrator.probe_data"
 
@@ -150,6 +172,7 @@ class MaterialTrainer(TrainerBase):
     def __init__(self, run_dir, out_dir=None, cfg: MaterialConfig = MaterialConfig(),
                  progress: bool = True, data=None):
         self.cfg, self.progress = cfg, progress
+        self.env_res = env_resolution(cfg)
         self.run_dir = Path(run_dir)
         self.out_dir = Path(out_dir) if out_dir else self.run_dir / "material"
         self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -195,7 +218,7 @@ class MaterialTrainer(TrainerBase):
         if probe_path is not None:
             integ["probes"] = str(probe_path)
         scene = {"type": "scene", "surfels": self.shape, "integrator": integ,
-                 "env": OctEnvmapBase.from_radiance(np.full((cfg.env_res,) * 2 + (3,), cfg.env_init),
+                 "env": OctEnvmapBase.from_radiance(np.full((self.env_res,) * 2 + (3,), cfg.env_init),
                                                     id="env")}
         for i, sd in enumerate(sensors):
             scene[f"sensor_{i:03d}"] = {**sd, "film": {**sd["film"], "pixel_format": "rgba"}}
@@ -238,7 +261,7 @@ class MaterialTrainer(TrainerBase):
         Under an unknown light a diffuse colour fits as albedo × light colour for any split;
         a known light removes the ambiguity, and it stays fixed."""
         c = self.cfg
-        r = c.env_res
+        r = self.env_res
         if c.env_file is None:
             return np.full((r, r, 3), c.env_init, np.float64)
         rad = oct_radiance_from_file(c.env_file, r, c.env_scale)   # [R, R, 3]; NaN: ValueError
@@ -271,7 +294,7 @@ class MaterialTrainer(TrainerBase):
     # ------------------------------------------------------------------ step
     def _apply(self):
         """Optimiser variables -> scene parameters (env.data = exp θ)."""
-        r = self.cfg.env_res
+        r = self.env_res
         if not (self.env_fixed and getattr(self, "_env_set", False)):   # a fixed map: once,
             e = dr.exp(self.opt[ENV_KEY])                               # and out of the graph
             self.mp["env.data"] = mi.TensorXf(dr.detach(e) if self.env_fixed else e,
@@ -389,7 +412,7 @@ class MaterialTrainer(TrainerBase):
                 "metallic": self.opt["surfels.metallic"]}
 
     def env_radiance(self) -> np.ndarray:
-        r = self.cfg.env_res
+        r = self.env_res
         return np.exp(np.array(dr.detach(self.opt[ENV_KEY]), np.float64)).reshape(r, r, 3)
 
     def _keys(self) -> dict:
@@ -460,5 +483,5 @@ def train_material(run_dir, out_dir=None, cfg: MaterialConfig = MaterialConfig()
                "setup_timings_s": tr.timings, "outputs": paths,
                "nonfinite_gradients": tr.nonfinite_total,
                "probes": ProbeSet.load(tr.out_dir / "probes.npz").count if tr.has_sops else None,
-               "config": dataclasses.asdict(cfg)}
+               "env_res": tr.env_res, "config": dataclasses.asdict(cfg)}
     return finish(tr, tr.out_dir, summary, stage="decompose")
