@@ -220,16 +220,24 @@ def test_learnt_map_takes_the_shadings_direction(tiny_run):
     from comgs_dr.core.exr import read_image
     from comgs_dr.eval.lighting_metrics import irradiance_contrast
     from comgs_dr.stages.decompose import (KNOWN_ENV_RES, LEARNT_ENV_RES, MaterialConfig,
-                                           env_resolution, train_material)
+                                           env_learning_rate, env_resolution, train_material)
     run, _ = tiny_run
     assert env_resolution(MaterialConfig()) == LEARNT_ENV_RES
     assert env_resolution(MaterialConfig(env_file="x.exr")) == KNOWN_ENV_RES
+    # fast over a short run, the same log-radiance budget over a long one (0.05 over 2k
+    # iterations diverged), a given rate kept
+    assert env_learning_rate(MaterialConfig(iterations=300)) == pytest.approx(0.05)
+    assert env_learning_rate(MaterialConfig(iterations=2000)) == pytest.approx(0.0075)
+    assert env_learning_rate(MaterialConfig(iterations=2000, lr_env=0.02)) == 0.02
+    with pytest.raises(ValueError, match="lr_env"):
+        MaterialConfig(lr_env=float("nan"))
     got = {}
     for tag, kw in {"paper": dict(env_res=256, lr_env=0.01),
-                    "default": dict(env_res=None, lr_env=MaterialConfig().lr_env)}.items():
+                    "default": dict(env_res=None, lr_env=None)}.items():
         out = run / f"mat_dir_{tag}"
         s = train_material(run, out, _cfg(iterations=60, eval_every=60, **kw), progress=False)
         assert s["env_res"] == (256 if tag == "paper" else LEARNT_ENV_RES)
+        assert s["lr_env"] == pytest.approx(0.01 if tag == "paper" else 0.05)
         env = read_image(out / "envmap_equirect.exr")[..., :3]
         got[tag] = (irradiance_contrast(env), _albedo_log_spread(out))
     assert got["default"][0] > 1.5 * got["paper"][0], got
