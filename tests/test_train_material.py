@@ -60,6 +60,9 @@ def test_resume_continues_from_checkpoint(tiny_run):
     assert s["iterations"] == 30
     with pytest.raises(ValueError, match="visibility"):
         MaterialTrainer(run, out, _cfg(visibility="trace"), progress=False)
+    # a checkpoint's map size is kept: another one says how to resume
+    with pytest.raises(ValueError, match="--env-res 16"):
+        MaterialTrainer(run, out, _cfg(env_res=None), progress=False)
 
 
 def test_trace_variant_and_relight(tiny_run):

@@ -166,6 +166,8 @@ def env_learning_rate(cfg: MaterialConfig) -> float:
     if cfg.lr_env is not None:
         return float(cfg.lr_env)
     return min(MAX_LR_ENV, ENV_LOG_BUDGET / max(int(cfg.iterations), 1))
+
+
 MAT_KEYS = ("surfels.albedo", "surfels.roughness", "surfels.metallic")
 ENV_KEY, SOPS_KEY = "env.theta", "integrator.probe_data"
 
@@ -452,6 +454,13 @@ class MaterialTrainer(TrainerBase):
         if resumed is not None and resumed[2]["config"].get("visibility") != self.cfg.visibility:
             raise ValueError(f"checkpoint {p} was made with visibility "
                              f"{resumed[2]['config'].get('visibility')!r}, not {self.cfg.visibility!r}")
+        if resumed is not None:
+            saved = resumed[2]["config"]
+            res = saved.get("env_res") or (KNOWN_ENV_RES if saved.get("env_file") else LEARNT_ENV_RES)
+            if int(res) != self.env_res:    # a run from before LEARNT_ENV_RES: 256²
+                raise ValueError(f"checkpoint {p} holds a {res}² environment map, not "
+                                 f"{self.env_res}²: resume with --env-res {res}, or start a "
+                                 f"new --out folder")
         return resumed
 
     @staticmethod
