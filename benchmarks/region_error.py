@@ -29,11 +29,13 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
-from comgs_dr.core.colorspace import LUMA, srgb_decode, srgb_encode
+import comgs_dr
+from comgs_dr.core.colorspace import srgb_decode, srgb_encode
 from comgs_dr.core.exr import read_image
 from comgs_dr.eval import comp_region
 from comgs_dr.eval.lighting_metrics import irradiance_contrast
-from comgs_dr.surfels.kernel import SH_C0
+from comgs_dr.eval.metrics import albedo_shading_split
+from comgs_dr.surfels import load_ply
 
 
 def _srgb(path: Path) -> np.ndarray:
@@ -83,20 +85,11 @@ def split(data: Path, comp: Path, variant: str) -> dict:
 
 
 def material_split(folder: Path) -> dict:
-    """The learnt map's irradiance contrast and the albedo's log-luminance spread and slope
-    on the step-1 colour's, over the opaque surfels of a step-2 folder."""
-    from plyfile import PlyData
-    v = PlyData.read(str(folder / "point_cloud.ply"))["vertex"]
-    opaque = 1.0 / (1.0 + np.exp(-np.asarray(v["opacity"], np.float64))) > 0.5
-    a = np.stack([v[f"albedo_{c}"] for c in range(3)], -1)[opaque].astype(np.float64)
-    c = np.stack([v[f"f_dc_{c}"] for c in range(3)], -1)[opaque].astype(np.float64)
-    c = np.asarray(srgb_decode(np.clip(0.5 + SH_C0 * c, 1e-3, 1.0)), np.float64)
-    la, lc = (np.log(np.maximum(x @ LUMA, 1e-4)) for x in (a, c))
+    """The learnt map's irradiance contrast and ``eval.metrics.albedo_shading_split`` of a
+    step-2 folder."""
     env = folder / "envmap_equirect.exr"
-    return {"env_contrast": irradiance_contrast(read_image(env)[..., :3]) if env.is_file() else np.nan,
-            "albedo_spread": float(la.std()), "step1_spread": float(lc.std()),
-            "slope": float(np.polyfit(lc, la, 1)[0]),
-            "albedo_median": np.median(a, 0)}
+    return {"env_contrast": irradiance_contrast(read_image(env)[..., :3]) if env.is_file()
+            else np.nan, **albedo_shading_split(load_ply(str(folder / "point_cloud.ply")))}
 
 
 def main(argv=None) -> int:
@@ -119,6 +112,7 @@ def main(argv=None) -> int:
                   f"{s['shadow_perfect']:>10.2f}{100 * s['rest_share']:>8.0f}"
                   f"{s['colour_fixed']:>14.2f}  {', '.join(f'{g:.2f}' for g in s['gain'])}")
     if a.material:
+        comgs_dr.set_variant("llvm_ad_rgb")           # load_ply builds Dr.Jit arrays
         print(f"\n{'step 2':<40}{'map E max/min':>14}{'albedo spread':>15}{'step 1':>8}"
               f"{'slope':>7}  albedo median")
         for m in a.material:

@@ -80,3 +80,31 @@ def test_drjit_ssim_matches_skimage(name, ref, img):
     assert abs(float(ours[inner].mean()) - mssim) < 5e-7
     # the whole-image loss is the NumPy metric's value (same zero padding): measured 2.6e-7
     assert abs(float(L.ssim(a, b)[0]) - M.ssim(img, ref)) < 5e-7
+
+
+def test_albedo_shading_split_reads_the_slope_by_hand():
+    """Grey surfels whose albedo is (step-1 linear colour)^0.5: log-luminance slope 0.5 and
+    spreads in that ratio; transparent surfels are left out; too few opaque ones: an error."""
+    import numpy as np
+    import pytest
+
+    from comgs_dr.core.colorspace import srgb_encode
+    from comgs_dr.eval.metrics import albedo_shading_split
+    from comgs_dr.surfels.kernel import SH_C0
+    from comgs_dr.surfels.params import SurfelParams
+    rng = np.random.default_rng(0)
+    n = 200
+    lin = rng.uniform(0.05, 0.9, n)
+    disp = np.asarray(srgb_encode(lin), np.float64)
+    sh = np.repeat(((disp - 0.5) / SH_C0)[:, None], 3, 1)
+    albedo = np.repeat(np.sqrt(lin)[:, None], 3, 1)
+    albedo[:10] = 1.0                                          # transparent: ignored
+    logit = np.where(np.arange(n) < 10, -5.0, 5.0)
+    p = SurfelParams.from_numpy(rng.normal(size=(n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)),
+                                np.full((n, 2), -3.0), logit, sh, albedo=albedo)
+    s = albedo_shading_split(p)
+    assert s["slope"] == pytest.approx(0.5, abs=1e-3)
+    assert s["albedo_spread"] == pytest.approx(0.5 * s["step1_spread"], rel=1e-3)
+    assert s["albedo_median"] == pytest.approx(np.median(np.sqrt(lin[10:])), abs=1e-3)
+    with pytest.raises(ValueError, match="opacity"):
+        albedo_shading_split(p, min_opacity=0.999)

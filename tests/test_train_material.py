@@ -205,16 +205,6 @@ def test_env_file_errors_are_clear(tiny_run, tmp_path):
                         progress=False)
 
 
-def _albedo_log_spread(out) -> float:
-    """std of log luminance of the opaque surfels' albedo (the object is one colour)."""
-    from comgs_dr.surfels import load_ply
-    q = load_ply(str(out / "point_cloud.ply")).to_numpy()
-    a = np.asarray(q["albedo"], np.float64).reshape(3, -1).T
-    o = 1.0 / (1.0 + np.exp(-np.asarray(q["opacity_logit"], np.float64).reshape(-1)))
-    lum = a[o > 0.5] @ np.array([0.2126, 0.7152, 0.0722])
-    return float(np.log(np.maximum(lum, 1e-3)).std())
-
-
 def test_learnt_map_takes_the_shadings_direction(tiny_run):
     """A learnt capture light must take the shading's direction before each surfel's albedo
     does (docs/composite.md, "The object's blotches"): the paper's 256² map at lr 0.01
@@ -222,8 +212,10 @@ def test_learnt_map_takes_the_shadings_direction(tiny_run):
     (``LEARNT_ENV_RES`` at lr 0.05) lights the object from the sky's sun side."""
     from comgs_dr.core.exr import read_image
     from comgs_dr.eval.lighting_metrics import irradiance_contrast
+    from comgs_dr.eval.metrics import albedo_shading_split
     from comgs_dr.stages.decompose import (KNOWN_ENV_RES, LEARNT_ENV_RES, MaterialConfig,
                                            env_learning_rate, env_resolution, train_material)
+    from comgs_dr.surfels import load_ply
     run, _ = tiny_run
     assert env_resolution(MaterialConfig()) == LEARNT_ENV_RES
     assert env_resolution(MaterialConfig(env_file="x.exr")) == KNOWN_ENV_RES
@@ -242,6 +234,7 @@ def test_learnt_map_takes_the_shadings_direction(tiny_run):
         assert s["env_res"] == (256 if tag == "paper" else LEARNT_ENV_RES)
         assert s["lr_env"] == pytest.approx(0.01 if tag == "paper" else 0.05)
         env = read_image(out / "envmap_equirect.exr")[..., :3]
-        got[tag] = (irradiance_contrast(env), _albedo_log_spread(out))
+        split = albedo_shading_split(load_ply(str(out / "point_cloud.ply")))
+        got[tag] = (irradiance_contrast(env), split["albedo_spread"])
     assert got["default"][0] > 1.5 * got["paper"][0], got
     assert got["default"][1] < got["paper"][1], got

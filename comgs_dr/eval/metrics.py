@@ -6,6 +6,9 @@ import math
 import numpy as np
 from scipy.ndimage import convolve1d
 
+from comgs_dr.core.colorspace import LUMA, srgb_decode
+from comgs_dr.surfels.kernel import SH_C0
+
 
 def psnr(img: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> float:
     """PSNR in dB of [H, W, 3] images in [0, 1] (img clipped), optionally over a mask."""
@@ -51,3 +54,23 @@ def depth_errors(d: np.ndarray, d_gt: np.ndarray, mask: np.ndarray) -> dict:
         return {"depth_mae": float("nan"), "depth_rel": float("nan")}
     e = np.abs(d[m] - d_gt[m])
     return {"depth_mae": float(e.mean()), "depth_rel": float((e / d_gt[m]).mean())}
+
+
+def albedo_shading_split(params, min_opacity: float = 0.5) -> dict:
+    """How a step-2 object split its capture's shading between the learnt light and the
+    albedo, over its surfels of opacity > ``min_opacity`` (``params``: a SurfelParams with
+    albedo): ``albedo_spread`` and ``step1_spread``, the standard deviations of the log
+    luminance of the albedo and of the step-1 colour (SH band 0, display sRGB, decoded);
+    ``slope``, the least-squares slope of the former on the latter (1: the albedo keeps all
+    of the capture's shading; near 0 on a one-colour object: the light explains it); and
+    ``albedo_median`` [3]."""
+    d = params.to_numpy()
+    opaque = 1.0 / (1.0 + np.exp(-d["opacity_logit"].astype(np.float64))) > min_opacity
+    if opaque.sum() < 2:
+        raise ValueError(f"albedo_shading_split: {int(opaque.sum())} surfels above opacity "
+                         f"{min_opacity}; need 2")
+    a = d["albedo"][opaque].astype(np.float64)
+    c = np.asarray(srgb_decode(np.clip(0.5 + SH_C0 * d["sh"][opaque, 0], 1e-3, 1.0)), np.float64)
+    la, lc = (np.log(np.maximum(x @ LUMA, 1e-4)) for x in (a, c))
+    return {"albedo_spread": float(la.std()), "step1_spread": float(lc.std()),
+            "slope": float(np.polyfit(lc, la, 1)[0]), "albedo_median": np.median(a, 0)}
