@@ -62,7 +62,8 @@ def albedo_shading_split(params, min_opacity: float = 0.5) -> dict:
     albedo): ``albedo_spread`` and ``step1_spread``, the standard deviations of the log
     luminance of the albedo and of the step-1 colour (SH band 0, display sRGB, decoded);
     ``slope``, the least-squares slope of the former on the latter (1: the albedo keeps all
-    of the capture's shading; near 0 on a one-colour object: the light explains it); and
+    of the capture's shading; near 0 on a one-colour object: the light explains it; NaN
+    when the step-1 colour does not vary); and
     ``albedo_median`` [3]."""
     d = params.to_numpy()
     opaque = 1.0 / (1.0 + np.exp(-d["opacity_logit"].astype(np.float64))) > min_opacity
@@ -72,5 +73,7 @@ def albedo_shading_split(params, min_opacity: float = 0.5) -> dict:
     a = d["albedo"][opaque].astype(np.float64)
     c = np.asarray(srgb_decode(np.clip(0.5 + SH_C0 * d["sh"][opaque, 0], 1e-3, 1.0)), np.float64)
     la, lc = (np.log(np.maximum(x @ LUMA, 1e-4)) for x in (a, c))
+    var = float(lc.var())        # a one-colour step 1 (a synthetic run): no slope to read
+    slope = float(np.mean((lc - lc.mean()) * (la - la.mean())) / var) if var > 1e-12 else np.nan
     return {"albedo_spread": float(la.std()), "step1_spread": float(lc.std()),
-            "slope": float(np.polyfit(lc, la, 1)[0]), "albedo_median": np.median(a, 0)}
+            "slope": slope, "albedo_median": np.median(a, 0)}
