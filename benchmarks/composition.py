@@ -44,6 +44,8 @@ def main(argv=None):
     ap.add_argument("--work", type=Path, default=Path("/tmp/compbench"))
     ap.add_argument("--objects", default="spot,teapot")
     ap.add_argument("--scene-map", default=None)
+    ap.add_argument("--object-map", default=None,
+                    help="map the objects are captured under (default: the dataset's studio)")
     ap.add_argument("--res", type=int, default=96, help="side of the captures")
     ap.add_argument("--comp-res", type=int, default=None,
                     help="side of the composites (default --res; e.g. --res 128 --comp-res 256)")
@@ -78,6 +80,8 @@ def main(argv=None):
                "--test-views", a.test_views, "--quiet"]
         if a.scene_map:
             cmd += ["--scene-map", a.scene_map]
+        if a.object_map:
+            cmd += ["--object-map", a.object_map]
         if a.comp_res:
             cmd += ["--comp-res", a.comp_res]
         if a.sky_views is not None:

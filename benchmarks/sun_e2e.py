@@ -51,8 +51,7 @@ def build_scene(env, sun_dir, dome_res: int, wedge_deg: float, max_elev_deg: flo
     from comgs_dr.core.equirect import equirect_directions, pixel_solid_angles
     from comgs_dr.eval.lighting_metrics import irradiance
     from comgs_dr.lighting.hdr import area_resize_equirect, expose
-    from comgs_dr.surfels.kernel import SH_C0
-    from comgs_dr.surfels.params import SurfelParams
+    from comgs_dr.surfels.params import SurfelParams, sh_from_base_colour
     from comgs_dr.surfels.shape import SurfelShapeBase
     h, w = dome_res, 2 * dome_res
     sky = area_resize_equirect(env, h, w)                                     # [h, w, 3]
@@ -90,7 +89,7 @@ def build_scene(env, sun_dir, dome_res: int, wedge_deg: float, max_elev_deg: flo
     scales.append(np.full((len(gx), 2), 0.6 * step))
     cols.append(albedo * e_col / np.pi)
     means, normals, scales, cols = (np.concatenate(x) for x in (means, normals, scales, cols))
-    sh = ((expose(cols, 0.0) - 0.5) / SH_C0)[:, None, :]           # the LDR capture
+    sh = sh_from_base_colour(expose(cols, 0.0))                      # the LDR capture
     params = SurfelParams.from_numpy(means, _frame_quats(normals), np.log(scales),
                                      np.full(len(means), 6.0), sh)
     scene = mi.load_dict({"type": "scene",

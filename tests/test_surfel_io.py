@@ -373,3 +373,22 @@ def test_bad_splat(tmp_path):
     path.write_bytes(a.tobytes())
     with pytest.raises(io.SurfelFileError, match="quaternion"):
         io.load_splat(path)
+
+
+def test_base_colour_is_the_3dgs_dc_term_and_inverts():
+    """base_colour is 0.5 + SH_C0 · f_dc (by hand: f_dc 1 → 0.5 + 0.28209…), higher bands
+    ignored; sh_from_base_colour inverts it; wrong shapes are errors."""
+    from comgs_dr.surfels import base_colour, sh_from_base_colour
+    sh = np.zeros((2, 4, 3), np.float32)
+    sh[0, 0] = [1.0, 0.0, -1.0]
+    sh[:, 1:] = 5.0                                   # view-dependent bands: not the base colour
+    np.testing.assert_allclose(base_colour(sh), [[0.78209479, 0.5, 0.21790521], [0.5, 0.5, 0.5]],
+                               atol=1e-7)
+    rgb = np.array([[0.1, 0.6, 0.9], [1.2, -0.1, 0.5]], np.float32)
+    back = sh_from_base_colour(rgb)
+    assert back.shape == (2, 1, 3) and back.dtype == np.float32
+    np.testing.assert_allclose(base_colour(back), rgb, atol=1e-6)
+    with pytest.raises(ValueError, match=r"\[N, K, 3\]"):
+        base_colour(np.zeros((4, 3)))
+    with pytest.raises(ValueError, match=r"\[N, 3\]"):
+        sh_from_base_colour(np.zeros((4, 1, 3)))

@@ -7,7 +7,7 @@ import numpy as np
 from scipy.ndimage import convolve1d
 
 from comgs_dr.core.colorspace import LUMA, srgb_decode
-from comgs_dr.surfels.kernel import SH_C0
+from comgs_dr.surfels.params import base_colour
 
 
 def psnr(img: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> float:
@@ -71,7 +71,7 @@ def albedo_shading_split(params, min_opacity: float = 0.5) -> dict:
         raise ValueError(f"albedo_shading_split: {int(opaque.sum())} surfels above opacity "
                          f"{min_opacity}; need 2")
     a = d["albedo"][opaque].astype(np.float64)
-    c = np.asarray(srgb_decode(np.clip(0.5 + SH_C0 * d["sh"][opaque, 0], 1e-3, 1.0)), np.float64)
+    c = np.asarray(srgb_decode(np.clip(base_colour(d["sh"][opaque]), 1e-3, 1.0)), np.float64)
     la, lc = (np.log(np.maximum(x @ LUMA, 1e-4)) for x in (a, c))
     var = float(lc.var())        # a one-colour step 1 (a synthetic run): no slope to read
     slope = float(np.mean((lc - lc.mean()) * (la - la.mean())) / var) if var > 1e-12 else np.nan

@@ -52,7 +52,7 @@ from comgs_dr.core.hostarray import to_jit
 from comgs_dr.lighting import clear_sky
 from comgs_dr.sops.occlusion import plane_normals
 from comgs_dr.surfels.io import quat_to_matrix
-from comgs_dr.surfels.kernel import SH_C0
+from comgs_dr.surfels.params import base_colour
 from comgs_dr.surfels.trace import trace_visibility
 
 log = logging.getLogger(__name__)
@@ -556,7 +556,7 @@ def scene_receivers(scene, params, colour_space: str = "srgb",
     cfg = cfg or SunFitConfig()
     d = params.to_numpy()
     normals = quat_to_matrix(d["quats"])[:, :, 2]
-    colour = np.clip(0.5 + SH_C0 * np.asarray(d["sh"])[:, 0], 0.0, None)
+    colour = np.clip(base_colour(d["sh"]), 0.0, None)
     if colour_space == "srgb":
         colour = np.asarray(srgb_decode(np.clip(colour, 0.0, 1.0)), np.float64)
     opacity = 1.0 / (1.0 + np.exp(-np.asarray(d["opacity_logit"], np.float64).reshape(-1)))

@@ -55,7 +55,7 @@ from comgs_dr.data.sfm_points import write_points_ply
 from comgs_dr.data.types import MITSUBA_FROM_OPENGL, Camera
 from comgs_dr.surfels import cut as C
 from comgs_dr.surfels.io import load_ply, quat_to_matrix, save_ply
-from comgs_dr.surfels.kernel import SH_C0
+from comgs_dr.surfels.params import base_colour
 from comgs_dr.surfels.params import SurfelParams
 from comgs_dr.train.checkpoint import atomic_write_text
 from comgs_dr.train.run import check_run_cameras, read_run_info, write_run_info
@@ -317,7 +317,7 @@ def write_object_run(out: Path, src: Source, obj: SurfelParams, m: np.ndarray,
             atomic_write_text(data / f"transforms_{split}.json", json.dumps(
                 {"frames": [_frame(v, m, fp) for v, fp in items]}, indent=1))
     d = obj.to_numpy()
-    rgb = np.clip(0.5 + SH_C0 * d["sh"][:, 0], 0, 1) * 255 + 0.5
+    rgb = np.clip(base_colour(d["sh"]), 0, 1) * 255 + 0.5
     write_points_ply(data / "points3d.ply", d["means"], rgb.astype(np.uint8))
     write_run_info(out, data, "object", src.info["resolution_scale"],
                    src.info["white_background"])

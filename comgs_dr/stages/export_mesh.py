@@ -38,7 +38,7 @@ from comgs_dr.core.hostarray import to_jit
 from comgs_dr.core.tsdf import TSDFVolume
 from comgs_dr.surfels import load_ply
 from comgs_dr.surfels.io import quat_to_matrix
-from comgs_dr.surfels.kernel import SH_C0
+from comgs_dr.surfels.params import base_colour
 from comgs_dr.surfels.params import object_bounds
 from comgs_dr.surfels.scene import gbuffer_scene
 from comgs_dr.train.losses import depth_to_normal
@@ -185,7 +185,7 @@ def _poisson(params, views, cfg: MeshConfig, src: str):
     if src == "albedo":
         rgb = d["albedo"][keep]
     else:
-        rgb = 0.5 + SH_C0 * d["sh"][keep, 0]
+        rgb = base_colour(d["sh"][keep])
     rgba = np.concatenate([_to_display(rgb, src), np.ones((len(pts), 1))], 1)
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts, v_normals_matrix=nrm, v_color_matrix=rgba))

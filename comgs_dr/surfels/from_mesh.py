@@ -19,8 +19,7 @@ import numpy as np
 from PIL import Image
 
 from comgs_dr.core.colorspace import srgb_decode, srgb_encode
-from comgs_dr.surfels.kernel import SH_C0
-from comgs_dr.surfels.params import SurfelParams, sh_coeff_count
+from comgs_dr.surfels.params import SurfelParams, sh_coeff_count, sh_from_base_colour
 
 log = logging.getLogger(__name__)
 
@@ -237,7 +236,7 @@ def from_mesh(mesh, n: int, *, seed: int = 0, opacity: float = 0.95, sh_degree: 
                     "using albedo %.1f grey", sources.count("default"), len(parts), DEFAULT_GREY)
     albedo = np.clip(albedo, 0.0, 1.0)
     sh = np.zeros((n, K, 3))
-    sh[:, 0] = (srgb_encode(np.clip(albedo, 0.0, 1.0)) - 0.5) / SH_C0
+    sh[:, 0] = sh_from_base_colour(srgb_encode(np.clip(albedo, 0.0, 1.0)))[:, 0]
 
     params = SurfelParams.from_numpy(
         means=pos, quats=quats, log_scales=log_scales,

@@ -24,8 +24,7 @@ import os
 import numpy as np
 import plyfile
 
-from comgs_dr.surfels.kernel import SH_C0
-from comgs_dr.surfels.params import SurfelParams
+from comgs_dr.surfels.params import SurfelParams, sh_from_base_colour
 
 log = logging.getLogger(__name__)
 
@@ -392,7 +391,7 @@ def load_splat(path, *, return_meta: bool = False):
     quats, log_scales = flatten_gaussians(q, np.log(a["scale"].astype(np.float64)))
     rgba = a["rgba"].astype(np.float64) / 255.0               # [N, 4]
     alpha = np.clip(rgba[:, 3], 0.5 / 255, 1 - 0.5 / 255)
-    sh = ((rgba[:, :3] - 0.5) / SH_C0)[:, None, :]             # [N, 1, 3]
+    sh = sh_from_base_colour(rgba[:, :3])                     # [N, 1, 3]
     log.warning("%s: .splat files carry no materials; using defaults %s", path, MATERIAL_DEFAULTS)
     params = SurfelParams.from_numpy(means=a["pos"], quats=quats, log_scales=log_scales,
                                      opacity_logit=np.log(alpha / (1 - alpha)), sh=sh)

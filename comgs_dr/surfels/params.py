@@ -30,12 +30,33 @@ import mitsuba as mi
 import numpy as np
 
 from comgs_dr.core.hostarray import to_jit
+from comgs_dr.surfels.kernel import SH_C0
 
 NUMPY_SHAPES = {  # field -> trailing shape (after N)
     "means": (3,), "quats": (4,), "log_scales": (2,), "opacity_logit": (),
     "sh": None, "albedo": (3,), "roughness": (), "metallic": (),
 }
 MATERIAL_FIELDS = ("albedo", "roughness", "metallic")
+
+
+def base_colour(sh) -> np.ndarray:
+    """[N, 3] float the view-independent (degree-0) colour of SH coefficients ``sh`` [N, K, 3]
+    (a ply's ``f_dc`` as [N, 1, 3] will do): 0.5 + SH_C0 · sh[:, 0], display values, not
+    clipped (the 3DGS convention of the table above, at any view). Callers clip to what they
+    need: [0, 1] for a colour, a floor above 0 for a logarithm."""
+    sh = np.asarray(sh)
+    if sh.ndim != 3 or sh.shape[2] != 3:
+        raise ValueError(f"base_colour: SH coefficients must be [N, K, 3], got {sh.shape}")
+    return 0.5 + SH_C0 * sh[:, 0]
+
+
+def sh_from_base_colour(rgb) -> np.ndarray:
+    """[N, 1, 3] float32 the degree-0 SH coefficients whose :func:`base_colour` is ``rgb``
+    [N, 3] (display values): the inverse, (rgb − 0.5) / SH_C0."""
+    rgb = np.asarray(rgb, np.float32)
+    if rgb.ndim != 2 or rgb.shape[1] != 3:
+        raise ValueError(f"sh_from_base_colour: colours must be [N, 3], got {rgb.shape}")
+    return ((rgb - 0.5) / SH_C0)[:, None, :].astype(np.float32)
 
 
 def sh_coeff_count(degree: int) -> int:

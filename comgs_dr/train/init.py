@@ -11,7 +11,7 @@ from comgs_dr.data.llff import view_near_far
 from comgs_dr.data.types import project
 from comgs_dr.surfels import load_ply
 from comgs_dr.surfels.from_mesh import frame_to_quat
-from comgs_dr.surfels.kernel import SH_C0
+from comgs_dr.surfels.params import sh_from_base_colour
 from comgs_dr.surfels.params import SurfelParams
 
 
@@ -59,7 +59,7 @@ def surfels_from_points(points: np.ndarray, colors: np.ndarray | None, rng: np.r
     k = (sh_degree + 1) ** 2
     sh = np.zeros((n, k, 3), np.float32)
     if colors is not None:
-        sh[:, 0] = (np.clip(np.asarray(colors, np.float32), 0, 1) - 0.5) / SH_C0
+        sh[:, 0] = sh_from_base_colour(np.clip(np.asarray(colors, np.float32), 0, 1))[:, 0]
     return SurfelParams.from_numpy(
         means=pts, quats=random_quaternions(n, rng) if quats is None else quats,
         log_scales=np.log(np.c_[s, s]),

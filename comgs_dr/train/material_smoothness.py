@@ -26,7 +26,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from comgs_dr.surfels.kernel import SH_C0
+from comgs_dr.surfels.params import base_colour
 
 
 def neighbour_pairs(means, colours, opacity, k: int = 8, sigma: float = 0.1,
@@ -67,7 +67,7 @@ def pairs_from_params(params, **kw) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     """``neighbour_pairs`` of a ``SurfelParams``: its means, SH band-0 colour, opacity."""
     d = params.to_numpy()
     sh = d["sh"].reshape(params.count, -1, 3)                               # [N, K, 3]
-    colours = np.clip(0.5 + SH_C0 * sh[:, 0], 0.0, 1.0)                     # [N, 3]
+    colours = np.clip(base_colour(sh), 0.0, 1.0)                     # [N, 3]
     opacity = 1.0 / (1.0 + np.exp(-d["opacity_logit"]))                      # [N]
     return neighbour_pairs(d["means"], colours, opacity, **kw)
 

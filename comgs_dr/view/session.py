@@ -400,7 +400,7 @@ class ViewSession:
 
 
 def _points(ply, limit: int, seed: int, colour: str):
-    from comgs_dr.surfels.kernel import SH_C0
+    from comgs_dr.surfels.params import base_colour
     d = load_ply(str(ply)).to_numpy()
     op = 1.0 / (1.0 + np.exp(-np.asarray(d["opacity_logit"], np.float64)))
     keep = np.flatnonzero(op > 0.3)
@@ -410,7 +410,7 @@ def _points(ply, limit: int, seed: int, colour: str):
         keep = np.sort(np.random.default_rng(seed).choice(keep, limit, replace=False))
     pos = np.asarray(d["means"], np.float32)[keep]
     if colour == "sh" and d.get("sh") is not None:
-        rgb = 0.5 + SH_C0 * np.asarray(d["sh"], np.float32)[keep, 0]
+        rgb = base_colour(np.asarray(d["sh"], np.float32)[keep])
     else:
         rgb = srgb_encode(np.clip(np.asarray(d["albedo"], np.float32)[keep], 0, 1))
     return pos, (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
