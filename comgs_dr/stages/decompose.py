@@ -30,11 +30,12 @@ import mitsuba as mi
 import numpy as np
 from tqdm.auto import tqdm
 
-from comgs_dr.core.colorspace import display_composite
+from comgs_dr.core.colorspace import display_composite, srgb_decode
 from comgs_dr.core.hostarray import to_jit
 from comgs_dr.emitters.octenvmap import OctEnvmapBase
 from comgs_dr.eval.metrics import psnr
 from comgs_dr.lighting.envmap import LOG_RANGE, OctEnvmap, oct_radiance_from_file
+from comgs_dr.lighting.shading_start import light_from_shading
 from comgs_dr.shading.shade import SAMPLINGS
 from comgs_dr.shading.visibility import KINDS
 from comgs_dr.sops.bake import bake
@@ -71,7 +72,11 @@ class MaterialConfig:
                                         # mis under a known env_file (its table fixed)
     env_res: int | None = None          # None: 256² (sec. 4.1) for a known env_file,
                                         # LEARNT_ENV_RES for a learnt map
-    env_init: float = 0.5               # initial constant radiance
+    env_init: float = 0.5               # initial constant radiance (env_start constant)
+    env_start: str = "shading"          # a learnt map's start: shading (the degree-2 light
+                                        # the training views' shading implies,
+                                        # lighting.shading_start; not in the paper) or
+                                        # constant (env_init, the paper)
     env_file: str | None = None         # the capture's light when it is known (an HDRI shot
                                         # on set, a synthetic capture's map): kept fixed
     env_scale: float = 1.0              # × env_file's radiance
@@ -123,6 +128,9 @@ class MaterialConfig:
         if self.sampling not in SAMPLINGS + ("auto",):
             raise ValueError(f"MaterialConfig.sampling must be auto or one of "
                              f"{', '.join(SAMPLINGS)}, got {self.sampling!r}")
+        if self.env_start not in ENV_STARTS:
+            raise ValueError(f"MaterialConfig.env_start must be one of {', '.join(ENV_STARTS)}, "
+                             f"got {self.env_start!r}")
         if self.iterations < 1 or self.rays < 1:
             raise ValueError("MaterialConfig: iterations and rays must be ≥ 1")
         if self.lambda_smooth is not None and not (np.isfinite(self.lambda_smooth)
@@ -134,6 +142,7 @@ class MaterialConfig:
                              f"{self.env_scale!r}")
 
 
+ENV_STARTS = ("shading", "constant")
 CKPT_FORMAT = "comgs_dr.material_checkpoint/2"
 SMOOTH_DEFAULT = 0.1           # lambda_smooth's default (docs/composite.md, "Sparkles")
 # A learnt capture light must take the shading's direction before the albedo does. Each
@@ -271,6 +280,10 @@ class MaterialTrainer(TrainerBase):
                       disable=not progress):
             self.integrator.shading_points(self.scene, j)   # fixed geometry: traced once per view
         self.timings["gbuffers_s"] = time.perf_counter() - t0
+        self.light_start = {"start": "file" if self.env_fixed else
+                            "resumed" if resumed is not None else cfg.env_start}
+        if self.light_start["start"] == "shading":
+            self._start_light_from_shading(lrs)
         dr.eval()
 
     def _initial_env(self) -> np.ndarray:
@@ -289,6 +302,36 @@ class MaterialTrainer(TrainerBase):
             raise ValueError(f"MaterialConfig.env_file {c.env_file}: radiance up to "
                              f"{rad.max():.3g} exceeds the map's range ({hi:.3g}); lower env_scale")
         return np.maximum(rad, lo)
+
+    def _start_light_from_shading(self, lrs: dict):
+        """The learnt map starts as the degree-2 light the training views' shading implies
+        (``lighting.shading_start``: the fully covered pixels' linear colour against their
+        G-buffer normals, at the albedo ``init_albedo`` the surfels start from). A view set
+        too small for the fit keeps the constant start, said in a warning and in the
+        summary's ``light_start``."""
+        ns, cs = [], []
+        for j, v in enumerate(self.views):
+            _, geo = self.integrator.shading_points(self.scene, j)
+            if not len(geo["pix_np"]):
+                continue
+            full = geo["W_np"].ravel()[geo["pix_np"]] > 0.99
+            n = np.asarray(geo["n"], np.float64).T                      # [P, 3]
+            img = np.asarray(v.image, np.float64).reshape(-1, np.asarray(v.image).shape[-1])
+            ns.append(n[full])
+            cs.append(srgb_decode(np.clip(img[geo["pix_np"][full], :3], 0.0, 1.0)))
+        try:
+            rad, info = light_from_shading(np.concatenate(ns) if ns else np.zeros((0, 3)),
+                                           np.concatenate(cs) if cs else np.zeros((0, 3)),
+                                           self.env_res, self.cfg.init_albedo)
+        except ValueError as e:
+            warnings.warn(f"step 2: the learnt light starts constant ({e})", stacklevel=2)
+            self.light_start = {"start": "constant", "reason": str(e)}
+            return
+        lo, hi = np.exp(LOG_RANGE[0]), np.exp(LOG_RANGE[1])
+        self.opt[ENV_KEY] = to_jit(mi.Float, np.log(np.clip(rad, lo, hi)).astype(np.float32).ravel())
+        self.opt.set_learning_rate(lrs)
+        self._apply()
+        self.light_start.update(info)
 
     # ------------------------------------------------------------------ probes
     def _make_probes(self, params, sensors) -> Path:
@@ -510,5 +553,6 @@ def train_material(run_dir, out_dir=None, cfg: MaterialConfig = MaterialConfig()
                "nonfinite_gradients": tr.nonfinite_total,
                "probes": ProbeSet.load(tr.out_dir / "probes.npz").count if tr.has_sops else None,
                "env_res": tr.env_res, "lr_env": env_learning_rate(cfg),
+               "light_start": tr.light_start,
                "config": dataclasses.asdict(cfg)}
     return finish(tr, tr.out_dir, summary, stage="decompose")
