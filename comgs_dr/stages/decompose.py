@@ -12,6 +12,8 @@ Deviation from the paper, on purpose: the step-1 geometry is kept fixed (no λ_d
 terms), so the geometry buffers of every view are traced once and cached; only material
 buffers are re-rendered per iteration. ``visibility='trace'`` replaces the probes by
 per-iteration ray tracing (the IRGS-style baseline) at otherwise identical settings.
+A learnt map starts from the degree-2 light the training views' shading implies
+(``lighting.shading_start``; the paper starts it constant, ``env_start="constant"``).
 
 Outputs in ``out_dir`` (default ``RUN/material``): ``point_cloud.ply`` (relightable),
 ``envmap.exr`` (octahedral) + ``envmap_equirect.exr``, ``probes.npz``, ``train_log.json``,
@@ -190,8 +192,9 @@ class MaterialTrainer(TrainerBase):
     latent variable: scale-free steps, HDR without overflow).
 
     While it learns the map, training keeps the paper's uniform-hemisphere estimator
-    (``MaterialConfig.sampling`` ``auto``): the map starts constant, where sampling it is
-    uniform on the sphere (half the samples below the horizon), and its table would be
+    (``MaterialConfig.sampling`` ``auto``): the map starts smooth (the degree-2 light of
+    the shading start, or constant), where importance sampling gains little over uniform
+    directions on the sphere (half the samples below the horizon), and its table would be
     rebuilt every step; each pixel gets its own rotation of the Hammersley set. Under a
     known map (``env_file``, kept fixed) it uses MIS, as rendering (relight, the plugin)
     does.
