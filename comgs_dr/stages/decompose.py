@@ -319,9 +319,10 @@ class MaterialTrainer(TrainerBase):
                 continue
             full = geo["W_np"].ravel()[geo["pix_np"]] > 0.99
             n = np.asarray(geo["n"], np.float64).T                      # [P, 3]
-            img = np.asarray(v.image, np.float64).reshape(-1, np.asarray(v.image).shape[-1])
+            img = np.asarray(v.image, np.float64)
+            img = img.reshape(-1, img.shape[-1])[geo["pix_np"][full], :3]
             ns.append(n[full])
-            cs.append(srgb_decode(np.clip(img[geo["pix_np"][full], :3], 0.0, 1.0)))
+            cs.append(srgb_decode(np.clip(img, 0.0, 1.0)))
         try:
             rad, info = light_from_shading(np.concatenate(ns) if ns else np.zeros((0, 3)),
                                            np.concatenate(cs) if cs else np.zeros((0, 3)),
